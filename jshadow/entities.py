@@ -1,0 +1,130 @@
+"""Scene entities as plain data: occluders, lights, receivers, and the method options.
+
+This module sits low in the import order (above ``sh``/``geometry``, below everything that renders),
+so that the shadow-field renderer (:mod:`jshadow.scene`) and the Monte Carlo reference
+(:mod:`jshadow.reference`) read the *same* scene description without importing each other.
+
+All classes are frozen ``equinox.Module``s. Array fields are pytree leaves (differentiable, e.g.
+``jax.grad`` with respect to ``SphereLight.center``); ``eqx.field(static=True)`` fields are not.
+
+Time: an animation of ``n_frames`` frames maps frame ``f`` to ``t = f / (n_frames - 1)`` in [0, 1]
+(``t = 0`` for a single frame); deformation parameters are interpolated linearly in ``t``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import equinox as eqx
+import jax.numpy as jnp
+from jaxtyping import Array, Float, Int
+
+__all__ = [
+    "Method",
+    "SphereOccluder",
+    "MeshOccluder",
+    "SphereLight",
+    "Environment",
+    "Receivers",
+    "Scene",
+    "frame_time",
+]
+
+
+@dataclass(frozen=True)
+class Method:
+    """Static options of the shadow-field method (the ``[method]`` table). Validated on creation."""
+
+    sh_bands: int = 4  # n: n² coefficients
+    bsv_grid: tuple[int, int] = (12, 20)  # θ × φ sample points on the bounding sphere
+    directions: tuple[int, int] = (32, 32)  # hemisphere directions per sample point
+    dtype: str = "float32"
+
+    def __post_init__(self):
+        if not (1 <= self.sh_bands <= 8):
+            raise ValueError(f"method.sh_bands must be in 1..8, got {self.sh_bands}")
+        for name in ("bsv_grid", "directions"):
+            v = getattr(self, name)
+            if len(v) != 2 or min(v) < 2:
+                raise ValueError(f"method.{name} must be two integers >= 2, got {v}")
+        if self.dtype not in ("float32", "float64"):
+            raise ValueError(f"method.dtype must be 'float32' or 'float64', got {self.dtype!r}")
+
+
+class SphereOccluder(eqx.Module):
+    center: Float[Array, "3"]
+    radius: Float[Array, ""]
+
+
+class MeshOccluder(eqx.Module):
+    """A (possibly deforming) triangle mesh.
+
+    ``unit_vertices`` is the rest pose normalised so that its bounding sphere (AABB centre, radius to
+    the farthest vertex) is the unit sphere at the origin. The world-space vertices at time t are
+    ``center + radius · deform(unit_vertices, t)``; ``deform`` is ``None`` for a rigid mesh.
+    """
+
+    unit_vertices: Float[Array, "V 3"]
+    faces: Int[Array, "F 3"]
+    center: Float[Array, "3"]
+    radius: Float[Array, ""]
+    deform: Callable | None = None  # an eqx.Module (x: (V,3), t: scalar) -> (V,3), or None
+    name: str = eqx.field(static=True, default="mesh")
+
+    @property
+    def deforms(self) -> bool:
+        return self.deform is not None
+
+    def vertices(self, t: Float[Array, ""] | float = 0.0) -> Float[Array, "V 3"]:
+        x = self.unit_vertices if self.deform is None else self.deform(self.unit_vertices, t)
+        return self.center + self.radius * x
+
+
+class SphereLight(eqx.Module):
+    center: Float[Array, "3"]
+    radius: Float[Array, ""]
+    radiance: Float[Array, "3"]  # linear RGB, constant over the sphere
+
+
+class Environment(eqx.Module):
+    """Distant lighting.
+
+    ``kind`` is "constant" (radiance only), "hdr" (lat-long ``image`` of shape (H, W, 3), row 0 the
+    zenith +y, columns once around in azimuth, times ``radiance``) or "sky" (analytic sky, times
+    ``radiance``).
+    """
+
+    radiance: Float[Array, "3"]
+    image: Float[Array, "H W 3"] | None = None
+    kind: str = eqx.field(static=True, default="constant")
+
+
+class Receivers(eqx.Module):
+    """Receiver vertices of the plane (or any fixed set of points), with normals and albedo."""
+
+    points: Float[Array, "N 3"]
+    normals: Float[Array, "N 3"]
+    albedo: Float[Array, "3"]
+    grid_shape: tuple[int, int] | None = eqx.field(static=True, default=None)  # plane: (rows, cols)
+
+
+class Scene(eqx.Module):
+    method: Method = eqx.field(static=True)
+    receivers: Receivers
+    occluders: tuple = ()  # SphereOccluder | MeshOccluder
+    lights: tuple = ()  # SphereLight
+    environment: Environment | None = None
+    self_shadow: bool = eqx.field(static=True, default=False)
+    n_frames: int = eqx.field(static=True, default=1)
+
+    @property
+    def dtype(self):
+        return jnp.dtype(self.method.dtype)
+
+
+def frame_time(frame: int, n_frames: int) -> float:
+    """Animation time t in [0, 1] of ``frame`` (0-based) out of ``n_frames``."""
+    if not (0 <= frame < max(n_frames, 1)):
+        raise ValueError(f"frame {frame} out of range for an animation of {n_frames} frames")
+    return 0.0 if n_frames <= 1 else frame / (n_frames - 1)
