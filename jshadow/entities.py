@@ -20,6 +20,8 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
+from ._numerics import safe_acos, safe_atan2
+
 __all__ = [
     "Method",
     "SphereOccluder",
@@ -29,6 +31,9 @@ __all__ = [
     "Receivers",
     "Scene",
     "frame_time",
+    "latlong_to_dir",
+    "dir_to_latlong",
+    "sky_radiance",
 ]
 
 
@@ -87,17 +92,58 @@ class SphereLight(eqx.Module):
     radiance: Float[Array, "3"]  # linear RGB, constant over the sphere
 
 
+def latlong_to_dir(u: Float[Array, "..."], v: Float[Array, "..."]) -> Float[Array, "... 3"]:
+    """World direction of lat-long image coordinates u, v in [0, 1].
+
+    v = 0 is the zenith (+y) and v = 1 the nadir; u runs once around in azimuth:
+    ``θ = π v``, ``φ = 2π u``, direction ``(sin θ cos φ, cos θ, −sin θ sin φ)`` (so u increases
+    counter-clockwise seen from above, starting at +x). Pixel (row i, column j) of an H×W image
+    covers v ∈ [i/H, (i+1)/H), u ∈ [j/W, (j+1)/W).
+    """
+    theta, phi = jnp.pi * v, 2.0 * jnp.pi * u
+    st = jnp.sin(theta)
+    return jnp.stack([st * jnp.cos(phi), jnp.cos(theta), -st * jnp.sin(phi)], axis=-1)
+
+
+def dir_to_latlong(d: Float[Array, "... 3"]) -> tuple[Float[Array, "..."], Float[Array, "..."]]:
+    """Inverse of :func:`latlong_to_dir`: (u, v) in [0, 1) × [0, 1] of unit directions."""
+    v = safe_acos(d[..., 1]) / jnp.pi
+    u = jnp.mod(safe_atan2(-d[..., 2], d[..., 0]) / (2.0 * jnp.pi), 1.0)
+    return u, v
+
+
+def sky_radiance(d: Float[Array, "... 3"]) -> Float[Array, "..."]:
+    """Analytic sky: the CIE overcast sky L(θ) = (1 + 2 cos θ)/3 above the horizon (zenith = 1,
+    horizon = 1/3; θ from +y), and a black ground below. Unitless; scaled by the radiance colour.
+    """
+    cy = d[..., 1]
+    return jnp.where(cy > 0, (1.0 + 2.0 * cy) / 3.0, 0.0)
+
+
 class Environment(eqx.Module):
     """Distant lighting.
 
-    ``kind`` is "constant" (radiance only), "hdr" (lat-long ``image`` of shape (H, W, 3), row 0 the
-    zenith +y, columns once around in azimuth, times ``radiance``) or "sky" (analytic sky, times
-    ``radiance``).
+    ``kind`` is "constant" (radiance only), "hdr" (lat-long ``image`` of shape (H, W, 3), see
+    :func:`latlong_to_dir`, times ``radiance``) or "sky" (:func:`sky_radiance` times ``radiance``).
     """
 
     radiance: Float[Array, "3"]
     image: Float[Array, "H W 3"] | None = None
     kind: str = eqx.field(static=True, default="constant")
+
+    def radiance_at(self, d: Float[Array, "... 3"]) -> Float[Array, "... 3"]:
+        """Radiance arriving from unit world directions d (piecewise constant per pixel for "hdr")."""
+        if self.kind == "constant":
+            return jnp.broadcast_to(self.radiance, (*d.shape[:-1], 3))
+        if self.kind == "sky":
+            return sky_radiance(d)[..., None] * self.radiance
+        if self.kind == "hdr":
+            h, w = self.image.shape[:2]
+            u, v = dir_to_latlong(d)
+            i = jnp.clip(jnp.floor(v * h).astype(jnp.int32), 0, h - 1)
+            j = jnp.clip(jnp.floor(u * w).astype(jnp.int32), 0, w - 1)
+            return self.image[i, j] * self.radiance
+        raise ValueError(f"unknown environment kind {self.kind!r}; expected constant, hdr or sky")
 
 
 class Receivers(eqx.Module):
