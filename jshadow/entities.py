@@ -45,6 +45,11 @@ class Method:
     bsv_grid: tuple[int, int] = (12, 20)  # θ × φ sample points on the bounding sphere
     directions: tuple[int, int] = (32, 32)  # hemisphere directions per sample point
     dtype: str = "float32"
+    shell: float = 1.0  # sampling-shell radius R / bounding radius r (1.0 = the paper)
+    model: str = "paper"  # extrapolation model (see jshadow.scaling)
+    radial_samples: int = 16  # number of tabulated M_k (Zhou et al. 2005 use 16)
+    d_range: tuple[float, float] = (0.2, 8.0)  # tabulated receiver distances, in shell radii
+    bsv_method: str = "auto"  # "auto" | "brute" | "edgescan"
 
     def __post_init__(self):
         if not (1 <= self.sh_bands <= 8):
@@ -55,6 +60,16 @@ class Method:
                 raise ValueError(f"method.{name} must be two integers >= 2, got {v}")
         if self.dtype not in ("float32", "float64"):
             raise ValueError(f"method.dtype must be 'float32' or 'float64', got {self.dtype!r}")
+        if not self.shell >= 1.0:
+            raise ValueError(
+                f"method.shell must be >= 1 (a multiple of the bounding radius), got {self.shell}"
+            )
+        if self.radial_samples < 2:
+            raise ValueError(f"method.radial_samples must be >= 2, got {self.radial_samples}")
+        if not (0 < self.d_range[0] < self.d_range[1]):
+            raise ValueError(f"method.d_range must be two increasing positive distances, got {self.d_range}")
+        if self.bsv_method not in ("auto", "brute", "edgescan"):
+            raise ValueError(f"method.bsv_method must be auto, brute or edgescan, got {self.bsv_method!r}")
 
 
 class SphereOccluder(eqx.Module):
