@@ -34,6 +34,7 @@ __all__ = [
     "latlong_to_dir",
     "dir_to_latlong",
     "sky_radiance",
+    "receivers_at",
 ]
 
 
@@ -189,3 +190,24 @@ def frame_time(frame: int, n_frames: int) -> float:
     if not (0 <= frame < max(n_frames, 1)):
         raise ValueError(f"frame {frame} out of range for an animation of {n_frames} frames")
     return 0.0 if n_frames <= 1 else frame / (n_frames - 1)
+
+
+def receivers_at(scene: Scene, frame: int = 0) -> tuple[Float[Array, "N 3"], Float[Array, "N 3"]]:
+    """All receiver points and unit normals of ``scene`` at ``frame``.
+
+    The plane's receivers come first (in the order of ``scene.receivers``); when
+    ``scene.self_shadow`` is set, the deformed vertices of every mesh occluder follow, occluder by
+    occluder, with area-weighted vertex normals. Renderer and reference both call this, so their
+    outputs line up receiver by receiver.
+    """
+    points, normals = [scene.receivers.points], [scene.receivers.normals]
+    if scene.self_shadow:
+        from .geometry import vertex_normals  # geometry is below entities' users; import lazily
+
+        t = frame_time(frame, scene.n_frames)
+        for occ in scene.occluders:
+            if isinstance(occ, MeshOccluder):
+                v = occ.vertices(t)
+                points.append(v)
+                normals.append(vertex_normals(v, occ.faces))
+    return jnp.concatenate(points, axis=0), jnp.concatenate(normals, axis=0)
