@@ -35,6 +35,7 @@ __all__ = [
     "dir_to_latlong",
     "sky_radiance",
     "receivers_at",
+    "receivers_at_time",
 ]
 
 
@@ -193,7 +194,12 @@ def frame_time(frame: int, n_frames: int) -> float:
 
 
 def receivers_at(scene: Scene, frame: int = 0) -> tuple[Float[Array, "N 3"], Float[Array, "N 3"]]:
-    """All receiver points and unit normals of ``scene`` at ``frame``.
+    """All receiver points and unit normals of ``scene`` at ``frame`` (see :func:`receivers_at_time`)."""
+    return receivers_at_time(scene, frame_time(frame, scene.n_frames))
+
+
+def receivers_at_time(scene: Scene, t) -> tuple[Float[Array, "N 3"], Float[Array, "N 3"]]:
+    """All receiver points and unit normals of ``scene`` at animation time t ∈ [0, 1].
 
     The plane's receivers come first (in the order of ``scene.receivers``); when
     ``scene.self_shadow`` is set, the deformed vertices of every mesh occluder follow, occluder by
@@ -202,9 +208,8 @@ def receivers_at(scene: Scene, frame: int = 0) -> tuple[Float[Array, "N 3"], Flo
     """
     points, normals = [scene.receivers.points], [scene.receivers.normals]
     if scene.self_shadow:
-        from .geometry import vertex_normals  # geometry is below entities' users; import lazily
+        from .geometry import vertex_normals  # imported lazily: geometry is optional for sphere scenes
 
-        t = frame_time(frame, scene.n_frames)
         for occ in scene.occluders:
             if isinstance(occ, MeshOccluder):
                 v = occ.vertices(t)
