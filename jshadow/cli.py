@@ -1,0 +1,284 @@
+"""Command line: ``jshadow render | reference | compare | bench``.
+
+Bad input (config errors, missing files, invalid numbers) ends with exit status 2 and one line on
+stderr naming the key or file; nothing is written in that case. Output files are written under a
+temporary name and renamed, so an interrupted run leaves no half-written file.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import pathlib
+import sys
+import tempfile
+import time
+
+import numpy as np
+
+__all__ = ["main"]
+
+
+class UsageError(Exception):
+    """Bad input from the user: reported as one line, exit status 2."""
+
+
+def _atomic_write(path: pathlib.Path, write) -> None:
+    """Call ``write(fileobj)`` on a temporary file next to ``path``, then rename it into place."""
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            write(fh)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def _save_npz(path: pathlib.Path, **arrays) -> None:
+    _atomic_write(path, lambda fh: np.savez(fh, **{k: np.asarray(v) for k, v in arrays.items()}))
+
+
+def _save_json(path: pathlib.Path, obj) -> None:
+    _atomic_write(path, lambda fh: fh.write(json.dumps(obj, indent=2).encode()))
+
+
+def _load(config_path: str):
+    """Load and build a scene; every problem becomes a UsageError naming the key or file."""
+    from .config import ConfigError, build_scene, load_config
+
+    try:
+        cfg = load_config(config_path)
+        scene = build_scene(cfg)
+    except ConfigError as err:
+        raise UsageError(str(err)) from None
+    except (ValueError, OSError) as err:
+        raise UsageError(f"{config_path}: {err}") from None
+    return cfg, scene
+
+
+def _make_out(out: str) -> pathlib.Path:
+    p = pathlib.Path(out)
+    try:
+        p.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise UsageError(f"cannot create output folder {out}: {err.strerror or err}") from None
+    if not os.access(p, os.W_OK):
+        raise UsageError(f"output folder {out} is not writable")
+    return p
+
+
+def _picture(path, scene, res, t, exposure, title):
+    from .entities import MeshOccluder, SphereOccluder
+    from .picture import default_camera, draw_frame, sphere_mesh
+
+    rec = scene.receivers
+    n_plane = rec.points.shape[0]
+    plane = None
+    if rec.grid_shape is not None:
+        pts = np.asarray(rec.points)
+        lo, hi = pts.min(0), pts.max(0)
+        plane = {
+            "center": (lo + hi) / 2,
+            "size": (hi[0] - lo[0], hi[2] - lo[2]),
+            "grid_shape": rec.grid_shape,
+            "radiance": np.asarray(res.radiance)[:n_plane],
+        }
+        camera = default_camera(plane["center"], plane["size"])
+    else:
+        camera = default_camera(np.zeros(3), (4.0, 4.0))
+    meshes, offset = [], n_plane
+    for occ in scene.occluders:
+        if isinstance(occ, MeshOccluder):
+            v = np.asarray(occ.vertices(t))
+            m = {"vertices": v, "faces": np.asarray(occ.faces)}
+            if scene.self_shadow:
+                m["vertex_radiance"] = np.asarray(res.radiance)[offset : offset + len(v)]
+                offset += len(v)
+            meshes.append(m)
+        elif isinstance(occ, SphereOccluder):
+            v, f = sphere_mesh(np.asarray(occ.center), float(occ.radius), 3)
+            meshes.append({"vertices": v, "faces": f})
+    for light in scene.lights:
+        v, f = sphere_mesh(np.asarray(light.center), float(light.radius), 2)
+        c = np.asarray(light.radiance, float)
+        meshes.append({"vertices": v, "faces": f, "emit": np.clip(c / max(c.max(), 1e-12), 0, 1)})
+    _atomic_write(path, lambda fh: draw_frame(fh, camera, plane, meshes, exposure=exposure, title=title))
+
+
+def _frame_arrays(scene, res, extra=None):
+    d = {
+        "points": res.points,
+        "normals": res.normals,
+        "irradiance": res.irradiance,
+        "radiance": res.radiance,
+        "plane_count": np.int64(scene.receivers.points.shape[0]),
+    }
+    if scene.receivers.grid_shape is not None:
+        d["grid_shape"] = np.asarray(scene.receivers.grid_shape, np.int64)
+    d.update(extra or {})
+    return d
+
+
+def cmd_render(args) -> int:
+    import jax
+    from tqdm.auto import tqdm
+
+    from .entities import frame_time
+    from .picture import exposure_for
+    from .runner import Renderer
+
+    _, scene = _load(args.config)
+    out = _make_out(args.out)
+    renderer = Renderer(scene, sphere_path=args.sphere_path)
+    frames, exposure, gif = [], None, []
+    n_plane = scene.receivers.points.shape[0]
+    t_start = time.perf_counter()
+    for f in tqdm(range(scene.n_frames), desc="render", unit="frame", disable=scene.n_frames < 2):
+        res, times = renderer.frame(f)
+        if f == 0 and scene.n_frames == 1 and not args.no_warm:
+            res, warm = renderer.frame(0)  # same frame again: compiled, for a warm timing
+            times = {"first_call": times, **warm}
+        frames.append(times)
+        _save_npz(out / f"frame_{f:04d}.npz", **_frame_arrays(scene, res))
+        if exposure is None:
+            exposure = args.exposure or exposure_for(np.asarray(res.radiance)[:n_plane])
+        png = out / f"frame_{f:04d}.png"
+        _picture(png, scene, res, frame_time(f, scene.n_frames), exposure, f"jshadow  frame {f}")
+        if args.gif:
+            import imageio.v3 as iio
+
+            gif.append(iio.imread(png))
+    wall = time.perf_counter() - t_start
+    warm = frames[1:] if len(frames) > 1 else [frames[0]]
+    summary = {
+        "device": str(jax.devices()[0]),
+        "receivers": int(np.asarray(res.points).shape[0]),
+        "frames": len(frames),
+        "first_frame_ms": frames[0].get("first_call", frames[0])["total_ms"],
+        "median_ms": {
+            k: float(np.median([fr[k] for fr in warm]))
+            for k in ("bsv_ms", "field_ms", "combine_ms", "total_ms")
+        },
+        "bsv_computations": renderer.bsv_computations,
+        "wall_s_including_pictures": wall,
+        "per_frame": frames,
+    }
+    _save_json(out / "timings.json", summary)
+    if gif:
+        import imageio.v3 as iio
+
+        _atomic_write(
+            out / "animation.gif",
+            lambda fh: fh.write(iio.imwrite("<bytes>", gif, extension=".gif", duration=80, loop=0)),
+        )
+    m = summary["median_ms"]
+    print(
+        f"rendered {len(frames)} frame(s), {summary['receivers']} receivers -> {out}  "
+        f"(warm median {m['total_ms']:.1f} ms/frame: BSV {m['bsv_ms']:.1f}, field {m['field_ms']:.1f}, "
+        f"combine {m['combine_ms']:.1f}; first frame incl. compile {summary['first_frame_ms']:.0f} ms)"
+    )
+    return 0
+
+
+def cmd_reference(args) -> int:
+    import jax
+
+    from .entities import frame_time
+    from .picture import exposure_for
+    from .reference import reference
+
+    if args.spp < 1:
+        raise UsageError(f"--spp must be a positive integer, got {args.spp}")
+    _, scene = _load(args.config)
+    out = _make_out(args.out)
+    frames = range(scene.n_frames) if args.frame is None else [args.frame]
+    timings, exposure = [], None
+    n_plane = scene.receivers.points.shape[0]
+    for f in frames:
+        key = jax.random.fold_in(jax.random.PRNGKey(args.seed), f)
+        t0 = time.perf_counter()
+        res = reference(scene, args.spp, key, frame=f, progress=True)
+        jax.block_until_ready(res.irradiance)
+        timings.append({"frame": f, "seconds": time.perf_counter() - t0, "spp": args.spp})
+        _save_npz(
+            out / f"frame_{f:04d}.npz",
+            **_frame_arrays(scene, res, {"irradiance_stderr": res.irradiance_stderr}),
+        )
+        if exposure is None:
+            exposure = args.exposure or exposure_for(np.asarray(res.radiance)[:n_plane])
+        _picture(
+            out / f"frame_{f:04d}.png",
+            scene,
+            res,
+            frame_time(f, scene.n_frames),
+            exposure,
+            f"reference  {args.spp} spp  frame {f}",
+        )
+    _save_json(out / "timings.json", {"seed": args.seed, "frames": timings})
+    print(f"reference: {len(timings)} frame(s) at {args.spp} spp -> {out}")
+    return 0
+
+
+def cmd_compare(args) -> int:
+    from .compare import compare_outputs
+
+    for d in (args.a, args.b):
+        if not pathlib.Path(d).is_dir():
+            raise UsageError(f"{d}: no such output folder")
+    try:
+        report = compare_outputs(args.a, args.b, out_png=args.out)
+    except ValueError as err:
+        raise UsageError(str(err)) from None
+    print(json.dumps(report, indent=2))
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="jshadow", description=__doc__.splitlines()[0])
+    sub = p.add_subparsers(dest="command", required=True)
+
+    r = sub.add_parser("render", help="render a scene config with shadow fields")
+    r.add_argument("config")
+    r.add_argument("--out", required=True)
+    r.add_argument("--gif", action="store_true", help="also write animation.gif")
+    r.add_argument(
+        "--sphere-path",
+        choices=("analytic", "bsv"),
+        default="analytic",
+        help="sphere occluders: exact cap (default) or through the BSV path",
+    )
+    r.add_argument("--exposure", type=float, default=None, help="fixed exposure for the pictures")
+    r.add_argument("--no-warm", action="store_true", help="single frame: skip the warm re-run")
+    r.set_defaults(func=cmd_render)
+
+    q = sub.add_parser("reference", help="Monte Carlo ground truth for a scene config")
+    q.add_argument("config")
+    q.add_argument("--spp", type=int, required=True, help="samples per receiver and strategy")
+    q.add_argument("--out", required=True)
+    q.add_argument("--seed", type=int, default=0)
+    q.add_argument("--frame", type=int, default=None, help="only this frame (default: all)")
+    q.add_argument("--exposure", type=float, default=None)
+    q.set_defaults(func=cmd_reference)
+
+    c = sub.add_parser("compare", help="error of output folder A against reference folder B")
+    c.add_argument("a")
+    c.add_argument("b")
+    c.add_argument("--out", default=None, help="PNG of the difference (frame 0)")
+    c.set_defaults(func=cmd_compare)
+    return p
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return args.func(args)
+    except UsageError as err:
+        print(f"jshadow {args.command}: error: {err}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

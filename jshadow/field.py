@@ -1,0 +1,95 @@
+"""Shadow-field evaluation at receivers: base sphere visibility (BSV) → visibility SH in world frame.
+
+For an occluder with bounding sphere (c, r), sampling shell R = shell·r and BSV coefficients
+``S_r[i, j]`` at the T×P shell points (see :mod:`jshadow.visibility`), the occlusion field at a
+receiver x is (deformable-shadow-fields paper, Sec. 4.3; DESIGN.md §1.4):
+
+1. ``u = (x − c)/|x − c|``, ``d = |x − c|``, spherical angles (θ, φ) of u about world +z;
+2. ``S_r(θ, φ)``: bilinear interpolation of the BSV (φ periodic; θ clamped to the outermost rows,
+   so the caps around the poles reuse the nearest ring — a limitation of any θ×φ grid);
+3. ``S_d = M_k · S_r`` with ``k = R/d`` and ``M_k`` interpolated linearly in k from the table;
+4. rotation from the local frame at (θ, φ) (z toward the centre) to world: ``D(frame) · S_d``.
+
+Receivers farther than the largest tabulated distance see no occlusion (visibility 1 = √(4π)·e0);
+those nearer than the smallest use the nearest table entry. Sphere occluders also have an exact
+analytic path (:func:`sphere_visibility_sh`): from distance d > r a sphere blocks the cap of
+half-angle asin(r/d) around the direction to its centre.
+"""
+
+from __future__ import annotations
+
+import math
+
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from . import sh
+from ._numerics import safe_acos, safe_atan2, safe_norm, safe_normalize, safe_sqrt
+from .scaling import MkTable, mk_apply, mk_in_range
+from .visibility import BSV, bsv_frames
+
+__all__ = ["unit_visibility", "interpolate_bsv", "bsv_visibility_sh", "sphere_visibility_sh"]
+
+
+def unit_visibility(shape: tuple[int, ...], n: int, dtype) -> Float[Array, "... n2"]:
+    """SH coefficients of V ≡ 1 (no occlusion): √(4π) on e0."""
+    return jnp.zeros((*shape, n * n), dtype).at[..., 0].set(math.sqrt(4.0 * math.pi))
+
+
+def interpolate_bsv(coeffs: Float[Array, "T P n2"], theta, phi) -> Float[Array, "... n2"]:
+    """Bilinear interpolation of BSV coefficients at angles (θ, φ) of the sampling sphere.
+
+    Grid convention: ``θ_i = π(i + 0.5)/T``, ``φ_j = 2πj/P``. φ wraps; θ is clamped to
+    [θ_0, θ_{T−1}]. Differentiable in θ, φ and the coefficients.
+    """
+    t_n, p_n = coeffs.shape[0], coeffs.shape[1]
+    a = jnp.clip(theta * (t_n / math.pi) - 0.5, 0.0, t_n - 1.0)
+    i0 = jnp.clip(jnp.floor(a).astype(jnp.int32), 0, max(t_n - 2, 0))
+    wa = (a - i0.astype(a.dtype))[..., None]
+    i1 = jnp.minimum(i0 + 1, t_n - 1)
+    b = jnp.mod(phi * (p_n / (2.0 * math.pi)), float(p_n))
+    j0f = jnp.floor(b)
+    wb = (b - j0f)[..., None]
+    j0 = jnp.mod(j0f.astype(jnp.int32), p_n)
+    j1 = jnp.mod(j0 + 1, p_n)
+    c00, c01 = coeffs[i0, j0], coeffs[i0, j1]
+    c10, c11 = coeffs[i1, j0], coeffs[i1, j1]
+    return (1 - wa) * ((1 - wb) * c00 + wb * c01) + wa * ((1 - wb) * c10 + wb * c11)
+
+
+def bsv_visibility_sh(bsv: BSV, table: MkTable, points: Float[Array, "... 3"]) -> Float[Array, "... n2"]:
+    """World-frame visibility SH of one BSV occluder at receiver points (..., 3) → (..., n²).
+
+    ``table`` is an occlusion-kind M_k table whose distances are in units of the sampling-shell
+    radius ``bsv.shell_radius`` (k = R/d). n is taken from the BSV coefficients; the table must have
+    at least as many bands.
+    """
+    n = sh.sh_bands_of(bsv.coeffs.shape[-1])
+    rel = points - bsv.center
+    d = safe_norm(rel)
+    u = safe_normalize(rel)
+    theta = safe_acos(u[..., 2])
+    phi = safe_atan2(u[..., 1], u[..., 0])
+    s_r = interpolate_bsv(bsv.coeffs, theta, phi)
+    big = jnp.asarray(1e6, d.dtype)
+    k = jnp.where(d > 0, bsv.shell_radius / jnp.where(d > 0, d, 1.0), big)
+    s_d = mk_apply(table, k, s_r)
+    _, frame = bsv_frames(theta, phi)
+    s_w = sh.rotate(s_d, frame)
+    return jnp.where(mk_in_range(table, k)[..., None], s_w, unit_visibility(d.shape, n, s_w.dtype))
+
+
+def sphere_visibility_sh(
+    center: Float[Array, "3"], radius: Float[Array, ""], points: Float[Array, "... 3"], n: int
+) -> Float[Array, "... n2"]:
+    """Exact visibility SH of a sphere occluder: 1 − cap(axis toward the centre, half-angle asin(r/d)).
+
+    Receivers inside the sphere (d <= r) are fully occluded (all zeros).
+    """
+    rel = center - points
+    d = safe_norm(rel)
+    axis = safe_normalize(rel)
+    s = jnp.clip(radius / jnp.maximum(d, radius), 0.0, 1.0)  # sin α
+    cos_alpha = safe_sqrt(1.0 - s * s)
+    vis = unit_visibility(d.shape, n, points.dtype) - sh.cap(axis, cos_alpha, n)
+    return jnp.where((d > radius)[..., None], vis, 0.0)

@@ -1,0 +1,188 @@
+"""Combination of shadow fields at receivers (Zhou et al. 2005, Sec. 5; DESIGN.md §1.5).
+
+At every receiver x with normal n and albedo ρ:
+
+* every occluder j contributes a visibility function V_j (SH, world frame, :mod:`jshadow.field`);
+* the environment lies behind every occluder: ``E_env = ∫ L_env · Π_j V_j · max(0, n·ω) dω``;
+* a sphere light l is shadowed only by the occluders whose centres are nearer to x than the light's
+  centre: ``E_l = ∫ L_l · Π_{j: d_j < d_l} V_j · max(0, n·ω) dω`` (sorting the entities by distance
+  and multiplying front to back is equivalent to this mask; the mask keeps shapes static);
+* ``E = E_env + Σ_l E_l`` and the outgoing radiance of the diffuse receiver is ``ρ/π · E``.
+
+Products of SH functions are SH triple products truncated to n bands; the final integral
+``∫ V · (L·T)`` is a double product of V with the n-band projection of L·T, which is exact for an
+n-band V (so one occluder under the environment costs one product L·T per receiver and one dot).
+What a scene does not need is skipped at trace time: no environment, no lights, no occluders,
+a single occluder (no visibility products).
+
+Sphere lights do not occlude (they are emitters only), matching :mod:`jshadow.reference`.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+
+import equinox as eqx
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from . import sh
+from .entities import MeshOccluder, Scene, SphereOccluder, frame_time, receivers_at_time
+from .field import bsv_visibility_sh, sphere_visibility_sh, unit_visibility
+from .lights import environment_sh, sphere_light_sh
+from .scaling import MkTable, mk_table
+from .visibility import BSV, bsv_mesh, bsv_sphere
+
+__all__ = [
+    "RenderResult",
+    "occlusion_table",
+    "scene_bsvs",
+    "occluder_bsv",
+    "mesh_bsv",
+    "occluder_visibilities",
+    "combine",
+    "render",
+    "render_at",
+]
+
+
+class RenderResult(eqx.Module):
+    """Per-receiver output of one frame: all arrays (N, 3)."""
+
+    points: Float[Array, "N 3"]
+    normals: Float[Array, "N 3"]
+    irradiance: Float[Array, "N 3"]  # E, W/m² per unit radiance scale (linear RGB)
+    radiance: Float[Array, "N 3"]  # outgoing radiance of the diffuse receiver: albedo/π · E
+
+
+@functools.lru_cache(maxsize=16)
+def _table(n, num, d_min, d_max, model, dtype) -> MkTable:
+    return mk_table(n=n, num=num, d_min=d_min, d_max=d_max, kind="occlusion", model=model, dtype=dtype)
+
+
+def occlusion_table(scene: Scene) -> MkTable:
+    """The occlusion M_k table of the scene's method (built once per method, then cached)."""
+    m = scene.method
+    return _table(m.sh_bands, m.radial_samples, m.d_range[0], m.d_range[1], m.model, scene.dtype)
+
+
+def scene_bsvs(scene: Scene, t, sphere_path: str = "analytic") -> tuple[BSV | None, ...]:
+    """BSV of every occluder at animation time t (None for spheres on the analytic path).
+
+    ``sphere_path="bsv"`` sends sphere occluders through the BSV + M_k path as well (for comparing
+    the two); meshes always use it.
+    """
+    return tuple(occluder_bsv(occ, t, scene, sphere_path) for occ in scene.occluders)
+
+
+def occluder_bsv(occ, t, scene: Scene, sphere_path: str = "analytic") -> BSV | None:
+    """BSV of one occluder at time t (see :func:`scene_bsvs`)."""
+    m = scene.method
+    if isinstance(occ, SphereOccluder):
+        if sphere_path == "analytic":
+            return None
+        if sphere_path != "bsv":
+            raise ValueError(f"sphere_path must be 'analytic' or 'bsv', got {sphere_path!r}")
+        return bsv_sphere(occ.center, occ.radius, n=m.sh_bands, grid=m.bsv_grid, shell=m.shell)
+    if isinstance(occ, MeshOccluder):
+        return mesh_bsv(occ, t, scene)
+    raise TypeError(f"unknown occluder type {type(occ).__name__}")
+
+
+def mesh_bsv(occ: MeshOccluder, t, scene: Scene) -> BSV:
+    """BSV of one mesh occluder at time t (deformed vertices, per-frame bounding sphere)."""
+    m = scene.method
+    v = occ.vertices(t)
+    return bsv_mesh(
+        v,
+        occ.faces,
+        n=m.sh_bands,
+        grid=m.bsv_grid,
+        directions=m.directions,
+        shell=m.shell,
+        method=m.bsv_method,
+    )
+
+
+def occluder_visibilities(
+    scene: Scene, bsvs: tuple[BSV | None, ...], points: Float[Array, "N 3"]
+) -> tuple[list, list]:
+    """Visibility SH (N, n²) and distance (N,) from each receiver to each occluder's centre."""
+    n = scene.method.sh_bands
+    table = occlusion_table(scene) if any(b is not None for b in bsvs) else None
+    vis, dist = [], []
+    for occ, b in zip(scene.occluders, bsvs, strict=True):
+        if b is None:
+            vis.append(sphere_visibility_sh(occ.center, occ.radius, points, n))
+            dist.append(jnp.linalg.norm(points - occ.center, axis=-1))
+        else:
+            vis.append(bsv_visibility_sh(b, table, points))
+            dist.append(jnp.linalg.norm(points - b.center, axis=-1))
+    return vis, dist
+
+
+def _product(vs: list) -> Float[Array, "N n2"] | None:
+    if not vs:
+        return None
+    acc = vs[0]
+    for v in vs[1:]:
+        acc = sh.sh_product(acc, v)
+    return acc
+
+
+def combine(
+    scene: Scene,
+    points: Float[Array, "N 3"],
+    normals: Float[Array, "N 3"],
+    vis: list,
+    dist: list,
+) -> Float[Array, "N 3"]:
+    """Irradiance (N, 3) from the occluders' visibilities and the scene's lights."""
+    n = scene.method.sh_bands
+    dtype = points.dtype
+    transfer = sh.clamped_cosine(normals, n)  # (N, n²): max(0, n·ω)
+    e = jnp.zeros((points.shape[0], 3), dtype)
+
+    if scene.environment is not None:
+        l_env = environment_sh(scene.environment, n).astype(dtype)  # (n², 3)
+        v_all = _product(vis)
+        if v_all is None:
+            e = e + transfer @ l_env  # double product, exact
+        else:
+            lt = sh.sh_product(transfer[:, None, :], l_env.T[None, :, :])  # (N, 3, n²)
+            e = e + jnp.einsum("ni,nci->nc", v_all, lt)
+
+    for light in scene.lights:
+        l_sh = sphere_light_sh(light.center, light.radius, light.radiance, points, n)  # (N, n², 3)
+        if not vis:
+            e = e + jnp.einsum("ni,nic->nc", transfer, l_sh)
+            continue
+        d_l = jnp.linalg.norm(points - light.center, axis=-1)
+        unit = unit_visibility((points.shape[0],), n, dtype)
+        near = [jnp.where((dj < d_l)[:, None], vj, unit) for vj, dj in zip(vis, dist, strict=True)]
+        v_near = _product(near)
+        lt = sh.sh_product(transfer[:, None, :], jnp.swapaxes(l_sh, -1, -2))  # (N, 3, n²)
+        e = e + jnp.einsum("ni,nci->nc", v_near, lt)
+    return e
+
+
+def render_at(scene: Scene, t, bsvs: tuple[BSV | None, ...] | None = None, sphere_path="analytic"):
+    """Render at animation time t ∈ [0, 1] (see :func:`render`)."""
+    if bsvs is None:
+        bsvs = scene_bsvs(scene, t, sphere_path)
+    points, normals = receivers_at_time(scene, t)
+    vis, dist = occluder_visibilities(scene, bsvs, points)
+    e = combine(scene, points, normals, vis, dist)
+    radiance = e * (scene.receivers.albedo / math.pi)
+    return RenderResult(points=points, normals=normals, irradiance=e, radiance=radiance)
+
+
+def render(scene: Scene, frame: int = 0, sphere_path: str = "analytic") -> RenderResult:
+    """Shadow-field rendering of one frame: irradiance and radiance at every receiver.
+
+    Differentiable with respect to the scene's array leaves (light and occluder positions, radii,
+    radiance, deformation amounts — but see the visibility module about gradients through binary
+    visibility). Receivers are those of :func:`jshadow.entities.receivers_at`, in the same order.
+    """
+    return render_at(scene, frame_time(frame, scene.n_frames), sphere_path=sphere_path)
