@@ -1,0 +1,114 @@
+"""Render-time benchmark: ms per frame split into BSV / field evaluation / combination.
+
+Usage::
+
+    python benchmarks/bench_render.py [--frames 12] [--json out.json]
+
+Rows:
+* every shipped config (configs/*.toml, fit configs excluded): warm median per stage;
+* the animated bunny (deforming every frame, 160×160 plane + self-shadowing, studio map);
+* shading cost per receiver per occluder: field + combination time / (receivers × occluders);
+* many occluders: 1, 4 and 16 sphere occluders through the BSV path over a 160×160 plane.
+
+Compile time is the first frame's time minus the warm median; warm figures are medians over the
+remaining frames (block_until_ready inside the renderer).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import pathlib
+import platform
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jshadow.config import build_scene, load_config
+
+from jshadow.entities import Environment, Method, Receivers, Scene, SphereOccluder
+from jshadow.runner import Renderer
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+
+
+def run_frames(scene, frames, sphere_path="analytic"):
+    rend = Renderer(scene, sphere_path=sphere_path)
+    t0 = time.perf_counter()
+    _, first = rend.frame(0)
+    first_s = time.perf_counter() - t0
+    rows = []
+    for i in range(frames):
+        _, t = rend.frame((i + 1) % max(scene.n_frames, 1))
+        rows.append(t)
+    med = {k: float(np.median([r[k] for r in rows])) for k in rows[0]}
+    return {
+        "compile_s": max(first_s - med["total_ms"] / 1e3, 0.0),
+        "median_ms": med,
+        "fps": 1e3 / med["total_ms"],
+        "receivers": int(scene.receivers.points.shape[0]),
+    }
+
+
+def plane(n, size=4.0):
+    xs = np.linspace(-size / 2, size / 2, n, dtype=np.float32)
+    x, z = np.meshgrid(xs, xs)
+    pts = np.stack([x.ravel(), np.zeros(x.size, np.float32), z.ravel()], -1)
+    nrm = np.tile(np.float32([0, 1, 0]), (x.size, 1))
+    return Receivers(jnp.asarray(pts), jnp.asarray(nrm), jnp.full(3, 0.8, jnp.float32), (n, n))
+
+
+def many_spheres(k, n_plane=160):
+    rng = np.random.default_rng(0)
+    occ = tuple(
+        SphereOccluder(
+            jnp.asarray(
+                [*rng.uniform(-1.5, 1.5, 1), rng.uniform(0.6, 1.6), *rng.uniform(-1.5, 1.5, 1)], jnp.float32
+            ),
+            jnp.float32(0.25),
+        )
+        for _ in range(k)
+    )
+    return Scene(Method(), plane(n_plane), occ, (), Environment(jnp.ones(3, jnp.float32)), n_frames=2)
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--frames", type=int, default=8)
+    ap.add_argument("--json", default=None)
+    ap.add_argument("--configs", nargs="*", default=None)
+    args = ap.parse_args()
+    out = {
+        "machine": f"{platform.processor() or platform.machine()}, {jax.devices()[0]}",
+        "date": time.strftime("%Y-%m-%d"),
+        "configs": {},
+        "occluders": {},
+    }
+    cfgs = args.configs or sorted(str(p) for p in (ROOT / "configs").glob("*.toml") if "fit" not in p.name)
+    for c in cfgs:
+        scene = build_scene(load_config(c))
+        r = run_frames(scene, args.frames)
+        n_occ = max(len(scene.occluders), 1)
+        r["shading_us_per_receiver_per_occluder"] = (
+            1e3 * (r["median_ms"]["field_ms"] + r["median_ms"]["combine_ms"]) / (r["receivers"] * n_occ)
+        )
+        out["configs"][pathlib.Path(c).name] = r
+        print(
+            f"{pathlib.Path(c).name:24s} {r['receivers']:7d} rec  compile {r['compile_s']:5.1f} s  "
+            + "  ".join(f"{k} {v:7.2f}" for k, v in r["median_ms"].items())
+            + f"  fps {r['fps']:6.1f}  shade {r['shading_us_per_receiver_per_occluder']:.3f} µs/rec/occ"
+        )
+    for k in (1, 4, 16):
+        r = run_frames(many_spheres(k), args.frames, sphere_path="bsv")
+        out["occluders"][k] = r
+        print(
+            f"{k:2d} sphere occluders (BSV path), 160² receivers: "
+            + "  ".join(f"{kk} {v:7.2f}" for kk, v in r["median_ms"].items())
+        )
+    if args.json:
+        pathlib.Path(args.json).write_text(json.dumps(out, indent=2))
+
+
+if __name__ == "__main__":
+    main()
