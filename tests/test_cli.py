@@ -1,0 +1,94 @@
+"""The command-line contract (DESIGN.md §4): output files and arrays, clean errors on bad input."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from jshadow.cli import main
+
+SCENE = """
+[method]
+directions = [8, 8]
+
+[environment]
+type = "constant"
+radiance = [1.0, 0.8, 0.6]
+
+[[occluder]]
+type = "sphere"
+center = [0.2, 1.0, 0.0]
+radius = 0.4
+
+[[light]]
+type = "sphere"
+center = [1.0, 3.0, 0.5]
+radius = 0.3
+radiance = [10.0, 10.0, 10.0]
+
+[receiver]
+type = "plane"
+center = [0.0, 0.0, 0.0]
+size = [3.0, 3.0]
+resolution = [9, 7]
+albedo = [0.5, 0.5, 0.5]
+"""
+
+
+@pytest.fixture
+def scene_file(tmp_path):
+    p = tmp_path / "scene.toml"
+    p.write_text(SCENE)
+    return p
+
+
+def test_render_and_reference_write_the_contract_files(tmp_path, scene_file):
+    assert main(["render", str(scene_file), "--out", str(tmp_path / "r")]) == 0
+    with np.load(tmp_path / "r" / "frame_0000.npz") as d:
+        for k in ("points", "normals", "irradiance", "radiance"):
+            assert d[k].shape == (63, 3) and np.all(np.isfinite(d[k]))
+        pts = d["points"]
+    assert (tmp_path / "r" / "frame_0000.png").stat().st_size > 1000
+    t = json.loads((tmp_path / "r" / "timings.json").read_text())
+    assert t["frames"] == 1 and t["median_ms"]["total_ms"] > 0
+
+    assert (
+        main(["reference", str(scene_file), "--spp", "16", "--out", str(tmp_path / "q"), "--seed", "1"]) == 0
+    )
+    with np.load(tmp_path / "q" / "frame_0000.npz") as d:
+        assert d["irradiance_stderr"].shape == (63, 3)
+        np.testing.assert_array_equal(d["points"], pts)
+
+    assert main(["compare", str(tmp_path / "r"), str(tmp_path / "q"), "--out", str(tmp_path / "d.png")]) == 0
+
+
+def test_misspelt_key_exits_2_with_one_line_and_no_output(tmp_path, scene_file):
+    bad = tmp_path / "bad.toml"
+    bad.write_text(SCENE.replace("resolution = [9, 7]", "resolution = [9, 7]\nresolutoin = [1, 1]"))
+    p = subprocess.run(
+        [sys.executable, "-m", "jshadow.cli", "render", str(bad), "--out", str(tmp_path / "bad")],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    lines = [line for line in p.stderr.splitlines() if line.strip()]
+    assert p.returncode == 2, p.stderr
+    assert len(lines) == 1 and "resolutoin" in lines[0] and "Traceback" not in p.stderr
+    assert not (tmp_path / "bad").exists()
+
+
+@pytest.mark.parametrize(
+    "args, needle",
+    [
+        (["render", "no/such/file.toml", "--out", "{tmp}/o"], "file.toml"),
+        (["reference", "{scene}", "--spp", "0", "--out", "{tmp}/o"], "--spp"),
+        (["compare", "{tmp}/nothere", "{tmp}/nothere2"], "nothere"),
+    ],
+)
+def test_bad_invocations_exit_2(tmp_path, scene_file, capsys, args, needle):
+    args = [a.format(tmp=tmp_path, scene=scene_file) for a in args]
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and needle in err[0]
