@@ -10,3 +10,17 @@ from ._basis import sh_basis_spherical as sh_basis_spherical
 from ._basis import sh_eval as sh_eval
 from ._basis import sh_index as sh_index
 from ._basis import sh_lm as sh_lm
+from ._grids import hemisphere_grid as hemisphere_grid
+from ._grids import project as project
+from ._grids import project_fn as project_fn
+from ._grids import sphere_grid as sphere_grid
+from ._rotation import rotate as rotate
+from ._rotation import rotation_matrix as rotation_matrix
+from ._triple import gaunt_tensor as gaunt_tensor
+from ._triple import product_matrix as product_matrix
+from ._triple import sh_product as sh_product
+from ._zonal import cap as cap
+from ._zonal import clamped_cosine as clamped_cosine
+from ._zonal import zonal_cap as zonal_cap
+from ._zonal import zonal_clamped_cosine as zonal_clamped_cosine
+from ._zonal import zonal_rotate as zonal_rotate
