@@ -1,0 +1,152 @@
+"""SH rotation: re-projection of the rotated function, group laws, batch shapes, gradients."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from conftest import BATCH_SHAPES
+from hypothesis import given
+from hypothesis import strategies as st
+from scipy.spatial.transform import Rotation
+
+from jshadow._numerics import eps
+from jshadow.sh import project, rotate, rotation_matrix, sh_basis, sphere_grid
+
+
+def _random_rot(seed, shape=()):
+    r = Rotation.random(int(np.prod(shape)) or 1, random_state=seed).as_matrix()
+    return r.reshape(*shape, 3, 3)
+
+
+def _axis_rot(axis, angle):
+    return Rotation.from_rotvec(np.asarray(axis, dtype=np.float64) * angle).as_matrix()
+
+
+@pytest.mark.usefixtures("x64")
+@pytest.mark.parametrize("n", range(1, 9))
+def test_equals_reprojection_of_rotated_function(n):
+    rng = np.random.default_rng(n)
+    R = _random_rot(n)
+    c = rng.normal(size=n * n)
+    d, w = sphere_grid(n, 2 * n - 1)
+    # g(ω) = f(Rᵀ ω); row-vector form: Rᵀ ω_k = (ω_kᵀ R)ᵀ
+    g = sh_basis(d @ R, n) @ c
+    want = project(g, d, w, n)
+    D = rotation_matrix(jnp.asarray(R), n)
+    np.testing.assert_allclose(D @ c, want, atol=1e-12)
+    np.testing.assert_allclose(rotate(jnp.asarray(c), jnp.asarray(R)), want, atol=1e-12)
+
+
+@pytest.mark.usefixtures("x64")
+def test_feature_moves_with_the_rotation():
+    # f peaked at +z (a clamped-cosine-like lobe): after rotating by R its peak is at R ẑ.
+    n = 6
+    d, w = sphere_grid(8, 16)
+    c = project(jnp.maximum(d[:, 2], 0.0) ** 4, d, w, n)
+    R = _axis_rot([1.0, 0, 0], np.pi / 2)  # ẑ -> -ŷ
+    g = rotate(c, jnp.asarray(R))
+    probe = jnp.asarray([[0, -1.0, 0], [0, 1.0, 0], [0, 0, 1.0]])
+    vals = sh_basis(probe, n) @ g
+    assert vals[0] > 0.5 and abs(float(vals[1])) < 0.1 and abs(float(vals[2])) < 0.1
+
+
+@pytest.mark.usefixtures("x64")
+@pytest.mark.parametrize("n", [2, 4, 8])
+def test_group_laws(n):
+    R1, R2 = _random_rot(7, (2,))
+    D1, D2 = rotation_matrix(jnp.asarray(R1), n), rotation_matrix(jnp.asarray(R2), n)
+    tol = eps(jnp.float64, 100)
+    np.testing.assert_allclose(rotation_matrix(jnp.asarray(R1 @ R2), n), D1 @ D2, atol=tol)
+    np.testing.assert_allclose(D1 @ D1.T, np.eye(n * n), atol=tol)
+    np.testing.assert_allclose(rotation_matrix(jnp.asarray(R1.T), n), D1.T, atol=tol)
+    np.testing.assert_allclose(rotation_matrix(jnp.eye(3), n), np.eye(n * n), atol=tol)
+    # block-diagonal per band
+    band = np.repeat(np.arange(n), 2 * np.arange(n) + 1)
+    assert np.all(np.asarray(D1)[band[:, None] != band[None, :]] == 0)
+
+
+@pytest.mark.usefixtures("x64")
+def test_band1_is_permuted_rotation():
+    # f(ω) = a·ω has band-1 coefficients sqrt(4π/3)·(a_y, a_z, a_x); f(Rᵀω) = (R a)·ω.
+    R = _random_rot(3)
+    a = np.array([0.3, -1.2, 0.7])
+    perm = [1, 2, 0]
+    c = np.zeros(4)
+    c[1:] = np.sqrt(4 * np.pi / 3) * a[perm]
+    want = np.sqrt(4 * np.pi / 3) * (R @ a)[perm]
+    np.testing.assert_allclose(rotate(jnp.asarray(c), jnp.asarray(R))[1:], want, atol=1e-14)
+
+
+@given(q=st.tuples(*[st.floats(-1, 1, allow_nan=False)] * 4).filter(lambda q: np.linalg.norm(q) > 0.1))
+def test_hypothesis_random_rotations_orthogonal_float32(q):
+    R = jnp.asarray(Rotation.from_quat(np.asarray(q)).as_matrix().astype(np.float32))
+    D = rotation_matrix(R, 4)
+    np.testing.assert_allclose(D @ D.T, np.eye(16), atol=eps(jnp.float32, 10))
+    c = jnp.arange(16, dtype=jnp.float32) / 16
+    np.testing.assert_allclose(rotate(c, R), D @ c, atol=eps(jnp.float32, 10))
+
+
+@pytest.mark.parametrize("shape", BATCH_SHAPES)
+def test_batch_shapes(shape):
+    R = jnp.asarray(_random_rot(11, shape).astype(np.float32))
+    c = jnp.asarray(np.random.default_rng(0).normal(size=(*shape, 16)).astype(np.float32))
+    D = rotation_matrix(R, 4)
+    assert D.shape == (*shape, 16, 16) and D.dtype == jnp.float32
+    out = rotate(c, R)
+    assert out.shape == (*shape, 16)
+    tol = eps(jnp.float32, 10)
+    np.testing.assert_allclose(out, jnp.einsum("...ij,...j->...i", D, c), atol=tol)
+    # a single coefficient vector broadcasts against a batch of rotations
+    assert rotate(c.reshape(-1, 16)[0], R).shape == (*shape, 16)
+
+
+@pytest.mark.usefixtures("x64")
+@pytest.mark.parametrize("axis", [[1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0], [0, 0, -1.0]])
+@pytest.mark.parametrize("angle", [0.0, np.pi / 2, np.pi])
+def test_gradients_finite_at_axes_and_identity(axis, angle):
+    c = jnp.linspace(-1.0, 1.0, 25)
+
+    def loss(theta):
+        R = _rot_jax(jnp.asarray(axis), theta)
+        return jnp.sum(rotate(c, R) ** 3) + jnp.sum(rotation_matrix(R, 5) ** 3)
+
+    g = jax.grad(loss)(jnp.asarray(angle))
+    assert np.isfinite(g)
+    jr = jax.jacrev(lambda R: rotation_matrix(R, 5))(jnp.asarray(_axis_rot(axis, angle)))
+    assert np.all(np.isfinite(jr))
+
+
+def _rot_jax(axis, theta):
+    """Rodrigues' formula (differentiable in theta)."""
+    k = jnp.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return jnp.eye(3) + jnp.sin(theta) * k + (1 - jnp.cos(theta)) * (k @ k)
+
+
+@pytest.mark.usefixtures("x64")
+def test_gradient_three_ways():
+    axis = jnp.asarray([0.48, -0.6, 0.64])
+    c = jnp.asarray(np.random.default_rng(5).normal(size=16))
+
+    def f(theta):
+        return rotate(c, _rot_jax(axis, theta))
+
+    t0 = jnp.asarray(0.7)
+    jf, jr = jax.jacfwd(f)(t0), jax.jacrev(f)(t0)
+    h = 1e-6
+    fd = (f(t0 + h) - f(t0 - h)) / (2 * h)
+    np.testing.assert_allclose(jf, jr, atol=1e-12)
+    np.testing.assert_allclose(jf, fd, atol=1e-8)
+    # d/dθ D(R(θ)) at θ = 0 is the band-wise generator: antisymmetric
+    gen = jax.jacfwd(lambda t: rotation_matrix(_rot_jax(axis, t), 4))(jnp.asarray(0.0))
+    np.testing.assert_allclose(gen, -gen.T, atol=1e-12)
+
+
+def test_bad_input():
+    with pytest.raises(ValueError, match=r"\(\.\.\., 3, 3\)"):
+        rotation_matrix(jnp.eye(2), 3)
+    with pytest.raises(ValueError, match="positive integer"):
+        rotation_matrix(jnp.eye(3), 0)
+    with pytest.raises(ValueError, match="floating"):
+        rotate(jnp.ones(4), jnp.eye(3, dtype=jnp.int32))
+    with pytest.raises(ValueError, match="square"):
+        rotate(jnp.ones(5), jnp.eye(3))
