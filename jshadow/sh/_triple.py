@@ -138,22 +138,20 @@ def product_matrix(a: Float[ArrayLike, "... n2"], n_out: int | None = None) -> F
 
     Returns:
         (..., n_out², n²) matrices ``M[i, k] = Σ_j G[i, j, k] a_j``. Multiplying several occluders
-        into one light is a chain of matrix–vector products with these.
+        into one light is a chain of matrix–vector products with these. Computed as one dense
+        matrix product of a with a constant (n², n_out²·n²) table (a plain GEMM; fast to compile).
     """
     a = jnp.asarray(a)
     n, n_out = _check_bands(_check_coeffs("a", a), n_out)
+    s = _product_matrix_table(n, n_out)  # (n², n_out² · n²): row j holds G[:, j, :]
+    m = jnp.matmul(a, jnp.asarray(s, dtype=a.dtype))
+    return m.reshape(*a.shape[:-1], n_out * n_out, n * n)
+
+
+@lru_cache(maxsize=32)
+def _product_matrix_table(n: int, n_out: int) -> np.ndarray:
     i, j, k, v = _gaunt(n, n_out)
-    entries: dict[tuple[int, int], list[tuple[float, int]]] = {}
-    for ii, jj, kk, vv in zip(i.tolist(), j.tolist(), k.tolist(), v.tolist()):
-        entries.setdefault((ii, kk), []).append((vv, jj))
-    zero = jnp.zeros(a.shape[:-1], a.dtype)
-    rows = []
-    for ii in range(n_out * n_out):
-        row = []
-        for kk in range(n * n):
-            acc = zero
-            for vv, jj in entries.get((ii, kk), ()):
-                acc = acc + vv * a[..., jj]
-            row.append(acc)
-        rows.append(jnp.stack(row, axis=-1))
-    return jnp.stack(rows, axis=-2)
+    s = np.zeros((n * n, n_out * n_out * n * n))
+    s[j, i * (n * n) + k] = v
+    s.setflags(write=False)
+    return s
