@@ -1,0 +1,306 @@
+"""Light sources as SH radiance: environment maps and spherical area lights.
+
+* :func:`read_latlong` reads a lat-long (equirectangular) radiance map; the convention (v = 0 at
+  the zenith +y, u from +x counter-clockwise seen from above) is :func:`jshadow.entities.latlong_to_dir`.
+* :func:`environment_sh` projects an :class:`~jshadow.entities.Environment` onto n SH bands in the
+  world frame (Zhou et al. 2005 represent distant lighting the same way).
+* :func:`sphere_light_sh` is the exact SH of a spherical light seen from receivers: a cap of
+  half-angle asin(r/d) around the direction to the centre, times the light's radiance.
+* :func:`sphere_light_srf` is the deformable-shadow-fields paper's source radiance field (SRF) path
+  for the same light: the radiance sampled on the light's bounding sphere (a hemisphere) and
+  extrapolated to distance d with an M_k table (Sec. 4.1–4.2, Appendix A). It exists to measure
+  that path against :func:`sphere_light_sh`.
+
+Radiance is linear RGB; SH arrays put the coefficient axis before the colour axis: (..., n², 3).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from functools import lru_cache
+
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Float
+
+from . import sh
+from ._numerics import safe_div, safe_norm, safe_normalize, safe_sqrt
+from .entities import Environment, latlong_to_dir
+from .scaling import MkTable, mk_apply
+
+__all__ = ["read_latlong", "environment_sh", "sphere_light_sh", "sphere_light_srf", "cap_zonal_t"]
+
+
+# ---- reading lat-long maps -------------------------------------------------------------------------
+
+
+def _read_rgbe(path: str) -> np.ndarray:
+    """Decode a Radiance RGBE (.hdr) file: flat or new-style run-length encoded scanlines."""
+    with open(path, "rb") as f:
+        data = f.read()
+    if not (data.startswith(b"#?RADIANCE") or data.startswith(b"#?RGBE")):
+        raise ValueError("not a Radiance .hdr file (missing '#?RADIANCE' header)")
+    pos = 0
+    while True:  # header lines up to an empty line
+        end = data.index(b"\n", pos)
+        line = data[pos:end].strip()
+        pos = end + 1
+        if line.startswith(b"FORMAT=") and line != b"FORMAT=32-bit_rle_rgbe":
+            raise ValueError(f"unsupported .hdr pixel format {line.decode(errors='replace')}")
+        if not line:
+            break
+    end = data.index(b"\n", pos)
+    res = data[pos:end].split()
+    pos = end + 1
+    if len(res) != 4 or res[0] != b"-Y" or res[2] != b"+X":
+        raise ValueError(f"unsupported .hdr orientation {b' '.join(res).decode(errors='replace')!r}")
+    h, w = int(res[1]), int(res[3])
+    buf = np.frombuffer(data, dtype=np.uint8)
+    out = np.empty((h, w, 4), np.uint8)
+    for row in range(h):
+        head = [int(b) for b in buf[pos : pos + 4]]
+        rle = 8 <= w < 32768 and head[:2] == [2, 2] and (head[2] << 8 | head[3]) == w
+        if not rle:  # flat scanline
+            out[row] = buf[pos : pos + 4 * w].reshape(w, 4)
+            pos += 4 * w
+            continue
+        pos += 4
+        for ch in range(4):
+            x = 0
+            while x < w:
+                count = int(buf[pos])
+                pos += 1
+                if count > 128:
+                    count -= 128
+                    out[row, x : x + count, ch] = buf[pos]
+                    pos += 1
+                else:
+                    out[row, x : x + count, ch] = buf[pos : pos + count]
+                    pos += count
+                x += count
+    e = out[..., 3].astype(np.int32)
+    scale = np.where(e > 0, np.ldexp(1.0, e - 136), 0.0)  # 2^(e − 128 − 8)
+    return ((out[..., :3].astype(np.float64) + 0.5) * scale[..., None]).astype(np.float32)
+
+
+def read_latlong(path: str | os.PathLike) -> np.ndarray:
+    """Read a lat-long radiance map as float32 (H, W, 3), W = 2H, linear RGB.
+
+    ``.hdr`` (Radiance RGBE) is decoded here; other formats (e.g. ``.exr``) go through imageio,
+    which reads them only if one of its plugins can. Raises ``ValueError`` naming the file when it
+    is missing or unreadable, not (H, 2H, 3|4), or has negative or non-finite values.
+    """
+    path = os.fspath(path)
+    if not os.path.isfile(path):
+        raise ValueError(f"environment map {path!r}: file not found")
+    try:
+        if path.lower().endswith(".hdr"):
+            img = _read_rgbe(path)
+        else:
+            import imageio.v3 as iio
+
+            img = np.asarray(iio.imread(path), dtype=np.float32)
+    except Exception as err:  # any decoder failure is the user's file problem
+        raise ValueError(f"environment map {path!r}: cannot read it ({err})") from None
+    if img.ndim != 3 or img.shape[2] not in (3, 4) or img.shape[1] != 2 * img.shape[0] or img.shape[0] < 1:
+        raise ValueError(
+            f"environment map {path!r}: expected a lat-long image of shape (H, 2H, 3), got {img.shape}"
+        )
+    img = np.ascontiguousarray(img[..., :3], dtype=np.float32)
+    if not np.all(np.isfinite(img)):
+        raise ValueError(f"environment map {path!r}: contains non-finite values")
+    if np.any(img < 0):
+        raise ValueError(f"environment map {path!r}: contains negative radiance")
+    return img
+
+
+# ---- environment ---------------------------------------------------------------------------------
+
+
+def _rot_y(alpha: float) -> np.ndarray:
+    c, s = math.cos(alpha), math.sin(alpha)
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+@lru_cache(maxsize=8)
+def _pixel_basis(h: int, w: int, n: int, spp: int, rotation_y: float) -> np.ndarray:
+    """B[i, j, c] = ∫_pixel(i,j) Y_c(R_y ω) dω ((H, W, n²), summed in float64), by a spp×spp product rule.
+
+    In each pixel: Gauss–Legendre in cos θ and midpoints in φ, with the pixel's exact solid angle
+    (cos θ_top − cos θ_bottom)·Δφ as the total weight.
+    """
+    x, wq = np.polynomial.legendre.leggauss(spp)
+    th_edges = np.linspace(0.0, math.pi, h + 1)
+    c_top, c_bot = np.cos(th_edges[:-1]), np.cos(th_edges[1:])
+    cos_nodes = 0.5 * (c_top + c_bot)[:, None] + 0.5 * (c_top - c_bot)[:, None] * x[None, :]  # (H, spp)
+    cos_w = 0.5 * (c_top - c_bot)[:, None] * wq[None, :]
+    v = np.arccos(np.clip(cos_nodes, -1.0, 1.0)) / math.pi
+    u = (np.arange(w)[:, None] + (np.arange(spp)[None, :] + 0.5) / spp) / w  # (W, spp)
+    dphi = 2.0 * math.pi / (w * spp)
+    vv = np.broadcast_to(v[:, None, :, None], (h, w, spp, spp))
+    uu = np.broadcast_to(u[None, :, None, :], (h, w, spp, spp))
+    d = np.asarray(latlong_to_dir(jnp.asarray(uu, jnp.float32), jnp.asarray(vv, jnp.float32)), np.float64)
+    d = d / np.linalg.norm(d, axis=-1, keepdims=True)
+    d = d @ _rot_y(rotation_y).T
+    y = np.asarray(sh.sh_basis(jnp.asarray(d, jnp.float32), n), np.float64)
+    wt = np.broadcast_to(cos_w[:, None, :, None] * dphi, (h, w, spp, spp))
+    return np.einsum("hwabc,hwab->hwc", y, wt)
+
+
+def environment_sh(
+    env: Environment, n: int, samples_per_pixel: int = 2, rotation_y: float = 0.0
+) -> Float[Array, "n2 3"]:
+    """SH coefficients (n², 3) of the environment's radiance in the world frame.
+
+    * "constant": exact, ``sqrt(4π)·L`` on e0.
+    * "hdr": the piecewise-constant image integrated over every pixel with its exact solid angle
+      ``(cos θ_top − cos θ_bottom)·Δφ`` and a ``samples_per_pixel``² product rule for Y_i inside
+      the pixel (Gauss–Legendre in cos θ, midpoints in φ); the per-pixel integrals of the basis are
+      cached per (H, W, n, samples, rotation) and the projection is one contraction with the image,
+      so it is differentiable in ``env.image`` and ``env.radiance``.
+    * "sky": quadrature of :meth:`Environment.radiance_at` (Gauss–Legendre in y on each hemisphere
+      × uniform φ), exact for the CIE overcast sky (linear in y, black ground).
+
+    ``rotation_y`` (radians, a Python float) turns the environment about +y: what the unrotated map
+    shows at direction ω appears at ``R_y(rotation_y)·ω``.
+    """
+    if int(n) != n or n < 1:
+        raise ValueError(f"n (number of SH bands) must be a positive integer, got {n}")
+    if int(samples_per_pixel) != samples_per_pixel or samples_per_pixel < 1:
+        raise ValueError(f"samples_per_pixel must be a positive integer, got {samples_per_pixel}")
+    rad = jnp.asarray(env.radiance)
+    dtype = rad.dtype
+    if env.kind == "constant":
+        return jnp.zeros((n * n, 3), dtype).at[0].set(math.sqrt(4.0 * math.pi) * rad)
+    if env.kind == "hdr":
+        img = jnp.asarray(env.image)
+        if img.ndim != 3 or img.shape[-1] != 3:
+            raise ValueError(f"Environment.image must have shape (H, W, 3), got {img.shape}")
+        b = _pixel_basis(img.shape[0], img.shape[1], int(n), int(samples_per_pixel), float(rotation_y))
+        return jnp.einsum("hwc,hwk->ck", jnp.asarray(b, img.dtype), img).astype(dtype) * rad
+    if env.kind == "sky":
+        t, wt = np.polynomial.legendre.leggauss(n + 2)
+        y = np.concatenate([0.5 * (t + 1.0), 0.5 * (t - 1.0)])  # both hemispheres, split at the horizon
+        wy = np.concatenate([0.5 * wt, 0.5 * wt])
+        n_phi = 2 * n + 1
+        u = (np.arange(n_phi) + 0.5) / n_phi
+        vv, uu = np.meshgrid(np.arccos(y) / math.pi, u, indexing="ij")
+        d = np.asarray(latlong_to_dir(jnp.asarray(uu), jnp.asarray(vv)), np.float64) @ _rot_y(rotation_y).T
+        wgt = (wy[:, None] * np.full(n_phi, 2.0 * math.pi / n_phi)[None, :]).reshape(-1)
+        d_world = jnp.asarray(d.reshape(-1, 3), dtype)
+        # radiance_at is evaluated at the *unrotated* direction, the basis at the rotated one
+        d_src = jnp.asarray(
+            np.asarray(latlong_to_dir(jnp.asarray(uu), jnp.asarray(vv))).reshape(-1, 3), dtype
+        )
+        vals = env.radiance_at(d_src)  # (N, 3)
+        basis = sh.sh_basis(d_world, n)  # (N, n²)
+        return jnp.einsum("q,qk,qc->kc", jnp.asarray(wgt, dtype), basis, vals)
+    raise ValueError(f"unknown environment kind {env.kind!r}; expected constant, hdr or sky")
+
+
+# ---- spherical lights ----------------------------------------------------------------------------
+
+
+@lru_cache(maxsize=16)
+def _cap_polys(n: int) -> tuple[tuple[float, ...], ...]:
+    """Coefficients (ascending) of Q_l(t) = ∫_{1−t}^1 P_l(x) dx, l < n (zero constant term)."""
+    out = []
+    for l in range(n):
+        p = np.polynomial.Legendre.basis(l).convert(kind=np.polynomial.Polynomial)
+        q = p(np.polynomial.Polynomial([1.0, -1.0])).integ(lbnd=0.0)
+        out.append(tuple(float(c) for c in q.coef))
+    return tuple(out)
+
+
+def cap_zonal_t(one_minus_cos: Float[ArrayLike, "..."], n: int) -> Float[Array, "... n"]:
+    """Zonal coefficients (..., n) of a cap's indicator, from t = 1 − cos α ∈ [0, 2].
+
+    ``z_l = 2π sqrt((2l+1)/4π) ∫_{1−t}^1 P_l``, evaluated as a polynomial in t with zero constant
+    term, so small caps (t ≪ 1) keep full relative accuracy in float32 (the form in cos α loses it).
+    """
+    t = jnp.asarray(one_minus_cos)
+    out = []
+    for l, coef in enumerate(_cap_polys(int(n))):
+        acc = jnp.zeros_like(t)
+        for c in coef[:0:-1]:  # Horner, highest degree first, constant term (0) skipped
+            acc = (acc + c) * t
+        out.append(2.0 * math.pi * math.sqrt((2 * l + 1) / (4.0 * math.pi)) * acc)
+    return jnp.stack(out, axis=-1)
+
+
+def _light_geometry(center, radius, points):
+    center, radius, points = jnp.asarray(center), jnp.asarray(radius), jnp.asarray(points)
+    if center.shape[-1:] != (3,) or points.shape[-1:] != (3,):
+        raise ValueError(
+            f"center and points must have a trailing axis of length 3, got {center.shape} and {points.shape}"
+        )
+    rel = center - points
+    return safe_norm(rel), safe_normalize(rel), radius
+
+
+def _full_sphere(shape, n, dtype):
+    return jnp.zeros((*shape, n * n), dtype).at[..., 0].set(math.sqrt(4.0 * math.pi))
+
+
+def sphere_light_sh(
+    center: Float[ArrayLike, "... 3"],
+    radius: Float[ArrayLike, "..."],
+    radiance: Float[ArrayLike, "... 3"],
+    points: Float[ArrayLike, "... 3"],
+    n: int,
+) -> Float[Array, "... n2 3"]:
+    """Exact SH (..., n², 3) of a spherical light of constant radiance seen from receiver points.
+
+    From distance d > r the light fills the cap of half-angle α = asin(r/d) around the direction to
+    its centre (Zhou et al. 2005 treat spherical sources the same way); receivers inside the light
+    (d <= r) see it over the whole sphere. World frame. Gradients with respect to center, radius,
+    radiance and points are finite everywhere (the cap's edge moves infinitely fast as d → r⁺; at
+    d = r itself the gradient of α is 0 by construction).
+    """
+    if int(n) != n or n < 1:
+        raise ValueError(f"n (number of SH bands) must be a positive integer, got {n}")
+    d, axis, radius = _light_geometry(center, radius, points)
+    s = jnp.clip(safe_div(radius, d, fill=1.0), 0.0, 1.0)  # sin α
+    t = s * s / (1.0 + safe_sqrt(1.0 - s * s))  # 1 − cos α without cancellation
+    c = sh.zonal_rotate(cap_zonal_t(t, n), axis)
+    c = jnp.where((d > radius)[..., None], c, _full_sphere(d.shape, n, c.dtype))
+    return c[..., None] * jnp.asarray(radiance)[..., None, :]
+
+
+def sphere_light_srf(
+    center: Float[ArrayLike, "... 3"],
+    radius: Float[ArrayLike, "..."],
+    radiance: Float[ArrayLike, "... 3"],
+    points: Float[ArrayLike, "... 3"],
+    n: int,
+    table: MkTable,
+) -> Float[Array, "... n2 3"]:
+    """The paper's SRF of a spherical light (..., n², 3), for comparison with :func:`sphere_light_sh`.
+
+    The radiance sampled on the light's sampling shell (radius r: there the light fills the
+    hemisphere toward its centre, a zonal function) is extrapolated to the receiver's distance with
+    ``S_d = M_k S_r``, k = r/d, from ``table`` (kind "radiance": the plain warp, or
+    "radiance_jacobian": the paper's Appendix A factor), and rotated to the direction of the centre.
+    Receivers inside the light see it everywhere, as in :func:`sphere_light_sh`; beyond the table's
+    largest distance the table clamps (the light stays at its size there), so build the table far
+    enough. Neither variant is exact: the plain warp inherits f_k's silhouette error
+    (tan α = r/(d − r) instead of sin α = r/d for the paper's model) and warps an already truncated
+    hemisphere; the Jacobian variant keeps ∫L dω = 2πL at every distance, so it does not dim.
+    """
+    if table.kind not in ("radiance", "radiance_jacobian"):
+        raise ValueError(
+            f"sphere_light_srf needs a 'radiance' or 'radiance_jacobian' table, got {table.kind!r}"
+        )
+    if int(n) != n or not 1 <= n <= table.n:
+        raise ValueError(f"n must be in 1..{table.n} (the table's bands), got {n}")
+    d, axis, radius = _light_geometry(center, radius, points)
+    dtype = d.dtype
+    z_r = cap_zonal_t(jnp.ones((), dtype), n)  # hemisphere at the shell: t = 1 − cos(π/2)
+    s_r = jnp.zeros((n * n,), dtype).at[jnp.asarray([l * l + l for l in range(n)])].set(z_r)
+    k = safe_div(radius, d, fill=1e6)
+    s_d = mk_apply(table, k, s_r)
+    z_d = s_d[..., jnp.asarray([l * l + l for l in range(n)])]
+    c = sh.zonal_rotate(z_d, axis)
+    c = jnp.where((d > radius)[..., None], c, _full_sphere(d.shape, n, c.dtype))
+    return c[..., None] * jnp.asarray(radiance)[..., None, :]
