@@ -52,6 +52,11 @@ def load_mesh(path: str | os.PathLike, dtype=None) -> Mesh:
             loaded = trimesh.load(name, process=False, force="mesh")
         vertices = np.asarray(loaded.vertices, dtype=np.float64)
         faces = np.asarray(loaded.faces)
+    except IndexError as err:  # OBJ faces are resolved while parsing
+        raise ValueError(
+            f"cannot read mesh file {name}: face index out of range "
+            f"(a face refers to a missing vertex: {err})"
+        ) from err
     except Exception as err:  # trimesh raises many different types for bad files
         raise ValueError(f"cannot read mesh file {name}: {type(err).__name__}: {err}") from err
     if faces.size == 0:

@@ -132,6 +132,8 @@ def validate_mesh(
     """
     v = np.asarray(vertices)
     f = np.asarray(faces)
+    if f.size == 0:
+        raise ValueError(f"{name}: mesh has no faces (need at least one triangle)")
     if v.ndim != 2 or v.shape[-1] != 3:
         raise ValueError(f"{name}: vertices must have shape (V, 3), got {v.shape}")
     if v.shape[0] == 0:
@@ -145,8 +147,6 @@ def validate_mesh(
             f"{name}: {int(bad.sum())} vertices have non-finite coordinates (NaN or inf), "
             f"first is vertex {i}: {v[i].tolist()}"
         )
-    if f.size == 0:
-        raise ValueError(f"{name}: mesh has no faces (need at least one triangle)")
     if f.ndim != 2 or f.shape[-1] != 3:
         raise ValueError(f"{name}: faces must have shape (F, 3) (triangles), got {f.shape}")
     if not np.issubdtype(f.dtype, np.integer):

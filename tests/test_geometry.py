@@ -1,0 +1,459 @@
+"""Meshes: shipped assets, loading, validation, manifold test, bounding sphere, normals, procedural."""
+
+import re
+import warnings
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from conftest import BATCH_SHAPES
+
+from jshadow._numerics import eps
+from jshadow.geometry import (
+    NORMAL_FALLBACK,
+    Mesh,
+    MeshWarning,
+    bounding_sphere,
+    egg,
+    face_areas,
+    face_normals,
+    icosphere,
+    load_mesh,
+    mesh_is_closed_manifold,
+    normalize_to_unit_sphere,
+    remove_degenerate_faces,
+    save_mesh,
+    signed_volume,
+    validate_mesh,
+    vertex_normals,
+)
+
+ASSETS = Path(__file__).resolve().parents[1] / "assets"
+
+
+def _sources_table():
+    """Rows (file, V, F) of the mesh table in assets/SOURCES.md."""
+    rows = []
+    for line in (ASSETS / "SOURCES.md").read_text().splitlines():
+        m = re.match(r"\|\s*`([^`]+\.(?:obj|ply))`\s*\|\s*(\d+)\s*\|\s*(\d+)\s*\|\s*(\w+)", line)
+        if m:
+            rows.append((m.group(1), int(m.group(2)), int(m.group(3)), m.group(4) == "yes"))
+    return rows
+
+
+def _cube():
+    v = np.array([[x, y, z] for x in (0.0, 1.0) for y in (0.0, 1.0) for z in (0.0, 1.0)])
+    # outward-wound triangles of the unit cube (vertex index = 4x + 2y + z)
+    f = np.array(
+        [[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
+         [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]]
+    )  # fmt: skip
+    return v, f
+
+
+def _write(path, text):
+    path.write_text(text)
+    return path
+
+
+# ---------------------------------------------------------------- shipped assets
+
+
+def test_sources_table_lists_every_shipped_mesh():
+    rows = _sources_table()
+    listed = {r[0] for r in rows}
+    shipped = {p.name for p in ASSETS.iterdir() if p.suffix in (".obj", ".ply")}
+    assert listed == shipped == {"bunny.obj", "bunny_small.obj", "spot.obj", "airplane.obj"}
+    text = (ASSETS / "SOURCES.md").read_text()
+    for credit in ("Stanford", "CC BY 3.0", "YahooJAPAN", "Oded Stein", "Keenan Crane", "Poly Haven", "CC0"):
+        assert credit in text
+
+
+@pytest.mark.parametrize("row", _sources_table(), ids=lambda r: r[0])
+def test_shipped_mesh_loads_with_the_counts_in_sources(row):
+    name, nv, nf, closed = row
+    mesh = load_mesh(ASSETS / name)  # warnings are errors: a clean mesh loads silently
+    assert mesh.vertices.shape == (nv, 3) and mesh.faces.shape == (nf, 3)
+    assert mesh.faces.dtype == jnp.int32 and mesh.vertices.dtype == jnp.result_type(float)
+    assert mesh_is_closed_manifold(mesh.faces) == closed
+    assert float(signed_volume(mesh.vertices, mesh.faces)) > 0  # outward winding
+    # vertex order is the file's (process=False): compare with the raw "v" lines
+    lines = (ASSETS / name).read_text().splitlines()
+    raw = np.array([ln.split()[1:4] for ln in lines if ln.startswith("v ")]).astype(np.float64)
+    np.testing.assert_allclose(np.asarray(mesh.vertices), raw, rtol=eps(np.float32))
+
+
+@pytest.mark.parametrize("name", ["venice_sunset_512x256.hdr", "studio_small_03_512x256.hdr"])
+def test_shipped_envmaps_are_radiance_files_of_the_stated_size(name):
+    head = (ASSETS / "envmaps" / name).read_bytes()[:400]
+    assert head.startswith(b"#?RADIANCE")
+    assert b"-Y 256 +X 512" in head
+
+
+# ---------------------------------------------------------------- loading and validation
+
+
+@pytest.mark.parametrize("ext", ["ply", "stl", "obj", "glb"])
+def test_round_trip_through_trimesh(tmp_path, ext):
+    mesh = icosphere(1, dtype=jnp.float32)
+    path = tmp_path / f"ball.{ext}"
+    save_mesh(mesh, path)
+    back = load_mesh(path)
+    assert back.faces.shape == mesh.faces.shape and back.vertices.shape == mesh.vertices.shape
+    assert mesh_is_closed_manifold(back.faces)
+    if ext in ("ply", "obj", "glb"):  # indexed formats keep the vertex order
+        np.testing.assert_allclose(back.vertices, mesh.vertices, atol=eps(np.float32))
+        np.testing.assert_array_equal(back.faces, mesh.faces)
+    else:  # STL has no shared vertices: merged in first-occurrence order; same triangles
+        tri = np.asarray(mesh.vertices)[np.asarray(mesh.faces)]
+        tri_back = np.asarray(back.vertices)[np.asarray(back.faces)]
+        np.testing.assert_allclose(tri_back, tri, atol=eps(np.float32))
+    np.testing.assert_allclose(
+        signed_volume(back.vertices, back.faces),
+        signed_volume(mesh.vertices, mesh.faces),
+        rtol=eps(np.float32, 10),
+    )
+
+
+def test_quads_are_triangulated(tmp_path):
+    v, _ = _cube()
+    quads = [[0, 1, 3, 2], [4, 6, 7, 5], [0, 4, 5, 1], [2, 3, 7, 6], [0, 2, 6, 4], [1, 5, 7, 3]]
+    text = "".join(f"v {a} {b} {c}\n" for a, b, c in v) + "".join(
+        "f " + " ".join(str(i + 1) for i in q) + "\n" for q in quads
+    )
+    mesh = load_mesh(_write(tmp_path / "cube.obj", text))
+    assert mesh.faces.shape == (12, 3)
+    assert mesh_is_closed_manifold(mesh.faces)
+    np.testing.assert_allclose(float(signed_volume(mesh.vertices, mesh.faces)), 1.0, rtol=eps(np.float32))
+
+
+@pytest.mark.parametrize(
+    ("text", "problem"),
+    [
+        ("v 0 0 0\nv 1 0 0\nv nan 1 0\nf 1 2 3\n", "non-finite"),
+        ("v 0 0 0\nv 1 0 0\nv 0 1 inf\nf 1 2 3\n", "non-finite"),
+        ("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 5\n", "out of range"),
+        ("v 0 0 0\nv 1 0 0\nv 0 1 0\n", "no faces"),
+        ("", "no faces"),
+        ("v 0 0 0\nv 1 0 0\nv 2 0 0\nv 0 0 0\nf 1 2 3\nf 1 4 2\n", "degenerate"),
+    ],
+)
+def test_load_errors_name_the_file_and_the_problem(tmp_path, text, problem):
+    path = _write(tmp_path / "broken_mesh.obj", text)
+    with pytest.raises(ValueError, match=problem) as info:
+        load_mesh(path)
+    assert "broken_mesh.obj" in str(info.value)
+
+
+def test_ply_with_out_of_range_index(tmp_path):
+    text = (
+        "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\n"
+        "element face 1\nproperty list uchar int vertex_indices\nend_header\n0 0 0\n1 0 0\n0 1 0\n3 0 1 7\n"
+    )
+    with pytest.raises(ValueError, match=r"bad_index\.ply.*out of range.*\[0, 1, 7\]"):
+        load_mesh(_write(tmp_path / "bad_index.ply", text))
+
+
+def test_missing_and_unreadable_files(tmp_path):
+    with pytest.raises(ValueError, match=r"not found.*nowhere\.obj"):
+        load_mesh(tmp_path / "nowhere.obj")
+    with pytest.raises(ValueError, match=r"cannot read mesh file .*junk\.ply"):
+        load_mesh(_write(tmp_path / "junk.ply", "this is not a ply file\n"))
+
+
+def test_validate_mesh_errors_directly():
+    v, f = _cube()
+    validate_mesh(v, f, "cube")  # clean: no error, no warning
+    with pytest.raises(ValueError, match=r"cube: .*non-finite.*vertex 2"):
+        validate_mesh(np.where(np.arange(8)[:, None] == 2, np.nan, v), f, "cube")
+    with pytest.raises(ValueError, match=r"cube: face index out of range: face 3 is \[4, 7, -1\]"):
+        validate_mesh(v, np.where(np.arange(12)[:, None] == 3, [[4, 7, -1]], f), "cube")
+    with pytest.raises(ValueError, match=r"cube: mesh has no faces"):
+        validate_mesh(v, np.zeros((0, 3), np.int64), "cube")
+    with pytest.raises(ValueError, match=r"cube: all 2 faces are degenerate"):
+        validate_mesh(v, np.array([[0, 0, 1], [0, 1, 1]]), "cube")
+    with pytest.raises(ValueError, match=r"cube: face indices must be integers"):
+        validate_mesh(v, f.astype(np.float64), "cube")
+    with pytest.raises(ValueError, match=r"cube: vertices must have shape \(V, 3\)"):
+        validate_mesh(v[:, :2], f, "cube")
+
+
+def test_open_mesh_warns_but_loads(tmp_path):
+    sphere = icosphere(1)
+    open_faces = np.asarray(sphere.faces)[1:]  # one hole
+    path = tmp_path / "holey.ply"
+    save_mesh(Mesh(sphere.vertices, open_faces), path)
+    with pytest.warns(MeshWarning, match=r"holey\.ply.*open or non-manifold"):
+        mesh = load_mesh(path)
+    assert mesh.faces.shape == (79, 3)
+    n = vertex_normals(mesh.vertices, mesh.faces)  # and it still works
+    assert bool(jnp.all(jnp.isfinite(n)))
+    with pytest.warns(MeshWarning, match="open or non-manifold"):
+        validate_mesh(sphere.vertices, open_faces, "holey")
+
+
+def test_degenerate_faces_are_removed_with_a_warning(tmp_path):
+    v, f = _cube()
+    v = np.concatenate([v, [[0.5, 0.0, 0.0]]])  # vertex 8 on the edge 0-4
+    f = np.concatenate([f, [[0, 8, 4], [0, 0, 1]]])  # a collinear sliver and a repeated index
+    mesh = Mesh(v, f, name="cube+slivers")
+    with pytest.warns(MeshWarning, match=r"cube\+slivers: removed 2 degenerate"):
+        clean = remove_degenerate_faces(mesh)
+    np.testing.assert_array_equal(clean.faces, f[:12])
+    assert remove_degenerate_faces(clean) is clean  # nothing to do: no warning
+    path = tmp_path / "slivers.obj"
+    save_mesh(mesh, path)
+    with pytest.warns(MeshWarning) as record:
+        loaded = load_mesh(path)
+    messages = " ".join(str(w.message) for w in record)
+    assert "removed 2 degenerate" in messages
+    assert loaded.faces.shape == (12, 3)
+
+
+def test_closed_manifold_detection():
+    v, f = _cube()
+    assert mesh_is_closed_manifold(f)
+    flipped = f.copy()
+    flipped[0] = flipped[0, ::-1]
+    assert not mesh_is_closed_manifold(flipped)  # inconsistent winding
+    assert not mesh_is_closed_manifold(f[1:])  # open
+    assert not mesh_is_closed_manifold(np.concatenate([f, f[:1]]))  # an edge in three faces
+    assert not mesh_is_closed_manifold(np.zeros((0, 3), np.int64))
+    two_cubes = np.concatenate([f, f + 8])  # closed but two components: still closed manifold
+    assert mesh_is_closed_manifold(two_cubes)
+
+
+def test_mesh_checks_shapes():
+    v, f = _cube()
+    with pytest.raises(ValueError, match=r"vertices must have shape \(V, 3\)"):
+        Mesh(v[:, :2], f)
+    with pytest.raises(ValueError, match=r"faces must have shape \(F, 3\)"):
+        Mesh(v, f[:, :2])
+    with pytest.raises(ValueError, match="integer"):
+        Mesh(v, f.astype(np.float32))
+    assert Mesh(v, f.astype(np.int64)).faces.dtype == jnp.int32
+
+
+# ---------------------------------------------------------------- bounding sphere
+
+
+@pytest.mark.usefixtures("x64")
+def test_bounding_sphere_of_known_point_sets():
+    box = np.array([[x, y, z] for x in (-1.0, 3.0) for y in (0.0, 2.0) for z in (5.0, 6.0)])
+    c, r = bounding_sphere(box)
+    np.testing.assert_allclose(c, [1.0, 1.0, 5.5])
+    np.testing.assert_allclose(r, np.sqrt(4.0 + 1.0 + 0.25))
+    # the AABB centre, not the minimal sphere: a far point on one side pulls the centre
+    pts = np.array([[0.0, 0.0, 0.0], [4.0, 0.0, 0.0], [1.0, 1.0, 0.0], [1.0, -1.0, 0.0]])
+    c, r = bounding_sphere(pts)
+    np.testing.assert_allclose(c, [2.0, 0.0, 0.0])
+    np.testing.assert_allclose(r, 2.0)
+    c, r = bounding_sphere(np.array([[1.0, 2.0, 3.0]]))
+    np.testing.assert_allclose(c, [1.0, 2.0, 3.0])
+    assert float(r) == 0.0
+
+
+@pytest.mark.usefixtures("x64")
+@pytest.mark.parametrize("batch", BATCH_SHAPES)
+def test_bounding_sphere_batches_and_contains_all_vertices(rng, batch):
+    v = rng.normal(size=(*batch, 17, 3))
+    c, r = bounding_sphere(v)
+    assert c.shape == (*batch, 3) and r.shape == batch
+    flat_v = v.reshape(-1, 17, 3)
+    for i, (ci, ri) in enumerate(zip(np.reshape(c, (-1, 3)), np.reshape(r, (-1,)))):
+        cc, rr = bounding_sphere(flat_v[i])
+        np.testing.assert_allclose(ci, cc, rtol=eps(np.float64))
+        np.testing.assert_allclose(ri, rr, rtol=eps(np.float64))
+        d = np.linalg.norm(flat_v[i] - ci, axis=-1)
+        assert d.max() <= ri * (1 + eps(np.float64)) and np.isclose(d.max(), ri)
+
+
+@pytest.mark.usefixtures("x64")
+def test_bounding_sphere_gradient_matches_finite_differences(rng):
+    v = rng.normal(size=(9, 3))
+    w = rng.normal(size=3)
+
+    def f(v):
+        c, r = bounding_sphere(v)
+        return jnp.dot(c, w) + 2.0 * r
+
+    g = jax.grad(f)(v)
+    h = 1e-6
+    fd = np.zeros_like(v)
+    for i in range(v.shape[0]):
+        for k in range(3):
+            e = np.zeros_like(v)
+            e[i, k] = h
+            fd[i, k] = (f(v + e) - f(v - e)) / (2 * h)
+    np.testing.assert_allclose(g, fd, atol=1e-7)
+    # only the extreme vertices (per-axis min/max, farthest) receive gradient
+    extreme = set(np.argmin(v, 0)) | set(np.argmax(v, 0))
+    far = int(np.argmax(np.linalg.norm(v - np.asarray(bounding_sphere(v)[0]), axis=-1)))
+    touched = set(np.flatnonzero(np.abs(g).sum(-1) > 0))
+    assert touched <= extreme | {far} and far in touched
+
+
+@pytest.mark.usefixtures("x64")
+def test_bounding_sphere_gradient_with_ties_and_zero_radius_is_finite():
+    # two vertices tie for the maximum x and for the farthest distance
+    v = jnp.array([[-1.0, 0.0, 0.0], [1.0, 0.5, 0.0], [1.0, -0.5, 0.0]])
+    g = jax.grad(lambda v: bounding_sphere(v)[1] + bounding_sphere(v)[0][0])(v)
+    assert bool(jnp.all(jnp.isfinite(g)))
+    # d(center_x)/d(max x) = 1/2 in total, shared between the tied vertices
+    gx = jax.grad(lambda v: bounding_sphere(v)[0][0])(v)
+    np.testing.assert_allclose(gx[1, 0] + gx[2, 0], 0.5)
+    np.testing.assert_allclose(gx[0, 0], 0.5)
+    single = jnp.zeros((4, 3))  # all vertices equal: radius 0
+    g0 = jax.grad(lambda v: bounding_sphere(v)[1])(single)
+    assert bool(jnp.all(jnp.isfinite(g0)))
+
+
+@pytest.mark.usefixtures("x64")
+@pytest.mark.parametrize("batch", BATCH_SHAPES)
+def test_normalize_to_unit_sphere(rng, batch):
+    v = rng.normal(size=(*batch, 11, 3)) * 3.0 + 7.0
+    u = normalize_to_unit_sphere(v)
+    c, r = bounding_sphere(u)
+    np.testing.assert_allclose(c, 0.0, atol=eps(np.float64))
+    np.testing.assert_allclose(r, 1.0, rtol=eps(np.float64))
+    c0, r0 = bounding_sphere(v)
+    placed = np.asarray(c0)[..., None, :] + np.asarray(r0)[..., None, None] * u
+    np.testing.assert_allclose(placed, v, rtol=eps(np.float64, 10))
+    # a single point maps to the origin with a finite gradient
+    p = jnp.ones((1, 3))
+    np.testing.assert_array_equal(normalize_to_unit_sphere(p), 0.0)
+    assert bool(jnp.all(jnp.isfinite(jax.grad(lambda p: normalize_to_unit_sphere(p).sum())(p))))
+
+
+def test_normalized_bunny_is_inside_unit_sphere():
+    mesh = load_mesh(ASSETS / "bunny_small.obj")
+    u = normalize_to_unit_sphere(mesh.vertices)
+    d = jnp.linalg.norm(u, axis=-1)
+    assert float(d.max()) == pytest.approx(1.0, abs=eps(jnp.float32))
+    np.testing.assert_allclose(0.5 * (u.min(0) + u.max(0)), 0.0, atol=eps(jnp.float32))
+
+
+# ---------------------------------------------------------------- normals, areas, volume
+
+
+def test_vertex_normals_of_icosphere_are_the_positions():
+    errs = []
+    for subdivisions in (1, 2, 3):
+        s = icosphere(subdivisions)
+        n = vertex_normals(s.vertices, s.faces)
+        np.testing.assert_allclose(jnp.linalg.norm(n, axis=-1), 1.0, rtol=eps(jnp.float32))
+        # the 12 valence-5 vertices of the icosahedron sit on symmetry axes: exact there
+        np.testing.assert_allclose(n[:12], s.vertices[:12], atol=eps(jnp.float32))
+        errs.append(float(jnp.max(jnp.linalg.norm(n - s.vertices, axis=-1))))
+    # one subdivision is still vertex-transitive: exact; beyond, unequal face areas tilt the
+    # average, an error that halves with each subdivision (first order in the edge length)
+    assert errs[0] < eps(jnp.float32)
+    assert errs[1] < 0.03
+    assert 0.4 < errs[2] / errs[1] < 0.6
+
+
+@pytest.mark.parametrize("batch", BATCH_SHAPES)
+def test_vertex_normals_batch_and_jit(rng, batch):
+    s = icosphere(1)
+    scale = jnp.asarray(rng.uniform(0.5, 2.0, size=(*batch, 1, 3)), jnp.float32)
+    v = s.vertices * scale
+    n = jax.jit(vertex_normals)(v, s.faces)
+    assert n.shape == (*batch, 42, 3)
+    ref = vertex_normals(v.reshape(-1, 42, 3)[0], s.faces)
+    np.testing.assert_allclose(n.reshape(-1, 42, 3)[0], ref, atol=eps(jnp.float32))
+
+
+@pytest.mark.usefixtures("x64")
+def test_vertex_normals_area_weighting_closed_form():
+    # two triangles sharing vertex 0: one in the z=0 plane (area 2), one in the x=0 plane (area 1/2)
+    v = jnp.array([[0.0, 0, 0], [2.0, 0, 0], [0.0, 2, 0], [0.0, 0, 1], [0.0, 1, 0]])
+    f = jnp.array([[0, 1, 2], [0, 4, 3]], dtype=jnp.int32)
+    n = vertex_normals(v, f)
+    expected = np.array([0.5, 0.0, 2.0]) / np.hypot(0.5, 2.0)  # 2·(0,0,1) + 0.5·(1,0,0), normalised
+    np.testing.assert_allclose(n[0], expected, rtol=eps(np.float64))
+    np.testing.assert_allclose(n[1], [0.0, 0.0, 1.0])
+
+
+@pytest.mark.usefixtures("x64")
+def test_vertex_normal_fallback_and_gradients():
+    s = icosphere(1, dtype=jnp.float64)
+    v = jnp.concatenate([s.vertices, jnp.array([[5.0, 5.0, 5.0]])])  # vertex 42 is unreferenced
+    n = vertex_normals(v, s.faces)
+    np.testing.assert_array_equal(n[42], NORMAL_FALLBACK)
+    w = jnp.asarray(np.random.default_rng(0).normal(size=v.shape))
+
+    def f(v):
+        return jnp.sum(vertex_normals(v, s.faces) * w)
+
+    g = jax.grad(f)(v)
+    assert bool(jnp.all(jnp.isfinite(g)))
+    np.testing.assert_array_equal(g[42], 0.0)
+    d = jnp.asarray(np.random.default_rng(1).normal(size=v.shape))
+    _, jvp = jax.jvp(f, (v,), (d,))  # forward and reverse mode agree
+    np.testing.assert_allclose(jnp.sum(g * d), jvp, rtol=eps(np.float64, 100))
+    h = 1e-6
+    fd = (f(v + h * d) - f(v - h * d)) / (2 * h)
+    np.testing.assert_allclose(jvp, fd, rtol=1e-7)
+    # a face that collapses to a point gives a zero vector sum: fallback, finite gradient
+    tiny = jnp.zeros((3, 3))
+    g0 = jax.grad(lambda v: vertex_normals(v, jnp.array([[0, 1, 2]], jnp.int32)).sum())(tiny)
+    assert bool(jnp.all(jnp.isfinite(g0)))
+
+
+@pytest.mark.usefixtures("x64")
+def test_areas_volume_and_face_normals():
+    v, f = _cube()
+    v = jnp.asarray(v)
+    f = jnp.asarray(f, jnp.int32)
+    np.testing.assert_allclose(face_areas(v, f), 0.5)
+    np.testing.assert_allclose(signed_volume(v, f), 1.0)
+    np.testing.assert_allclose(signed_volume(v, f[:, ::-1]), -1.0)
+    np.testing.assert_allclose(signed_volume(2.0 * v + 3.0, f), 8.0)  # translation-invariant
+    centroid = v[f].mean(axis=1) - 0.5
+    nrm = face_normals(v, f)
+    np.testing.assert_allclose(jnp.sum(nrm * centroid, -1), 0.5)  # outward, unit, face-centred
+    s = icosphere(4, dtype=jnp.float64)
+    area = float(face_areas(s.vertices, s.faces).sum())
+    vol = float(signed_volume(s.vertices, s.faces))
+    assert 4 * np.pi * 0.99 < area < 4 * np.pi and 4 / 3 * np.pi * 0.98 < vol < 4 / 3 * np.pi
+
+
+# ---------------------------------------------------------------- procedural meshes
+
+
+@pytest.mark.parametrize("subdivisions", [0, 1, 2])
+def test_icosphere_and_egg_are_closed_and_outward(subdivisions):
+    for mesh in (icosphere(subdivisions), egg(subdivisions)):
+        assert mesh.vertices.shape == (10 * 4**subdivisions + 2, 3)
+        assert mesh.faces.shape == (20 * 4**subdivisions, 3)
+        assert mesh_is_closed_manifold(mesh.faces)
+        validate_mesh(mesh.vertices, mesh.faces, mesh.name)  # no error, no warning
+        c = 0.5 * (mesh.vertices.min(0) + mesh.vertices.max(0))
+        centroid = mesh.vertices[mesh.faces].mean(axis=1) - c
+        assert bool(jnp.all(jnp.sum(face_normals(mesh.vertices, mesh.faces) * centroid, -1) > 0))
+    s = icosphere(subdivisions)
+    np.testing.assert_allclose(jnp.linalg.norm(s.vertices, axis=-1), 1.0, rtol=eps(jnp.float32))
+
+
+def test_egg_shape():
+    s, e = icosphere(3), egg(3, stretch=0.2)
+    assert float(e.vertices[:, 1].max()) == pytest.approx(1.4, rel=eps(jnp.float32))
+    assert float(e.vertices[:, 1].min()) == pytest.approx(-1.0, rel=eps(jnp.float32))
+    np.testing.assert_array_equal(e.vertices[:, [0, 2]], s.vertices[:, [0, 2]])
+    # one end stretched: the top half is longer than the bottom half
+    assert float(signed_volume(e.vertices, e.faces)) > float(signed_volume(s.vertices, s.faces))
+    with pytest.raises(ValueError, match="stretch"):
+        egg(1, stretch=1.5)
+    with pytest.raises(ValueError, match="subdivisions"):
+        icosphere(-1)
+
+
+def test_loading_does_not_warn_for_clean_meshes(tmp_path):
+    path = tmp_path / "egg.obj"
+    save_mesh(egg(1), path)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        mesh = load_mesh(path)
+    assert mesh_is_closed_manifold(mesh.faces)
