@@ -1,0 +1,217 @@
+"""From a validated :class:`~._schema.Config` to a :class:`jshadow.entities.Scene`.
+
+``build_scene`` is traceable: it is a pure function of the config's float leaves (centres, radii,
+radiances, sizes, deformation amounts, the environment's rotation), so ``jax.jvp``/``jax.grad``
+differentiate through it and it may run under ``jax.jit`` with the config as an argument. Files
+(meshes, environment maps) are read once per path and kept as NumPy arrays in a cache, so tracing
+does not re-read them.
+"""
+
+from __future__ import annotations
+
+import functools
+import pathlib
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from ..entities import Environment, MeshOccluder, Receivers, Scene, SphereLight, SphereOccluder
+from ._errors import ConfigError
+from ._schema import Config, OccluderConfig
+
+__all__ = ["build_scene", "plane_receivers", "rotate_latlong_y", "clear_file_cache"]
+
+
+def _dtype(config: Config):
+    return jax.dtypes.canonicalize_dtype(np.dtype(config.method.dtype))
+
+
+def plane_receivers(
+    center: Float[Array, "3"],
+    size: Float[Array, "2"],
+    resolution: tuple[int, int],
+    albedo: Float[Array, "3"],
+) -> Receivers:
+    """A plane of receiver vertices at height ``center[1]``, normal +y (DESIGN.md §4 ``[receiver]``).
+
+    ``resolution`` = (nx, nz) vertices spanning ``size`` = (w, d) scene units in x and z, centred at
+    ``center``: x_c = cx + w·(c/(nx−1) − ½), z_r = cz + d·(r/(nz−1) − ½) (a single vertex sits at the
+    centre). Points are in row-major order, rows along z and columns along x: index ``r·nx + c``;
+    ``grid_shape`` = (nz, nx). Differentiable in ``center``, ``size`` and ``albedo``.
+    """
+    nx, nz = (int(n) for n in resolution)
+    if nx < 1 or nz < 1:
+        raise ValueError(f"plane resolution must be two integers >= 1, got {tuple(resolution)}")
+    center, size = jnp.asarray(center), jnp.asarray(size)
+    dtype = center.dtype
+
+    def offsets(n):
+        return jnp.zeros((1,), dtype) if n == 1 else jnp.linspace(-0.5, 0.5, n, dtype=dtype)
+
+    x = center[0] + size[0] * offsets(nx)  # (nx,)
+    z = center[2] + size[1] * offsets(nz)  # (nz,)
+    xx = jnp.broadcast_to(x[None, :], (nz, nx))
+    zz = jnp.broadcast_to(z[:, None], (nz, nx))
+    yy = jnp.broadcast_to(center[1], (nz, nx))
+    points = jnp.stack([xx, yy, zz], axis=-1).reshape(nz * nx, 3)
+    normals = jnp.broadcast_to(jnp.asarray([0.0, 1.0, 0.0], dtype), (nz * nx, 3))
+    return Receivers(points=points, normals=normals, albedo=jnp.asarray(albedo), grid_shape=(nz, nx))
+
+
+def rotate_latlong_y(image: Float[Array, "H W C"], angle: Float[Array, ""] | float) -> Float[Array, "H W C"]:
+    """Rotate a lat-long environment map about +y by ``angle`` radians.
+
+    Positive angles turn the map counter-clockwise seen from above (right-handed about +y): the
+    radiance that arrived from direction d arrives from R_y(angle)·d afterwards. With the lat-long
+    convention of :func:`jshadow.entities.latlong_to_dir` (φ = 2πu counter-clockwise from +x) that is
+    L'(φ) = L(φ − angle): a shift of the columns by +angle·W/(2π), linear between columns (exact
+    ``np.roll`` for multiples of 2π/W), wrapping around. Differentiable in ``angle`` (piecewise
+    linear).
+    """
+    image = jnp.asarray(image)
+    w = image.shape[1]
+    angle = jnp.asarray(angle, image.dtype)
+    s = jnp.arange(w, dtype=image.dtype) - angle * (w / (2.0 * jnp.pi))  # source column of each column
+    j0 = jnp.floor(s)
+    frac = (s - j0)[None, :, None]
+    j0 = j0.astype(jnp.int32) % w
+    j1 = (j0 + 1) % w
+    return (1.0 - frac) * image[:, j0] + frac * image[:, j1]
+
+
+@functools.lru_cache(maxsize=64)
+def _mesh_arrays(key: tuple, dtype_name: str) -> tuple[np.ndarray, np.ndarray, str]:
+    """(unit vertices, faces, name) of a mesh file or procedural shape, cached by path/parameters."""
+    from ..geometry import egg, icosphere, load_mesh, normalize_to_unit_sphere
+
+    with jax.ensure_compile_time_eval():  # concrete even inside a trace: the cache holds no tracers
+        if key[0] == "file":
+            mesh = load_mesh(key[1], dtype=dtype_name)
+            name = pathlib.Path(key[1]).stem
+        elif key[1] == "egg":
+            mesh = egg(key[2], stretch=key[3], dtype=dtype_name)
+            name = "egg"
+        else:
+            mesh = icosphere(key[2], dtype=dtype_name)
+            name = "icosphere"
+        unit = normalize_to_unit_sphere(mesh.vertices)
+        return np.asarray(unit), np.asarray(mesh.faces), name
+
+
+def _unit_mesh(config: Config, i: int, occ: OccluderConfig) -> tuple[np.ndarray, np.ndarray, str]:
+    if occ.file is not None:
+        key = ("file", occ.file)
+        where = f"occluder[{i}].file"
+    else:
+        key = ("shape", occ.shape, occ.subdivisions, float(occ.stretch))
+        where = f"occluder[{i}].shape"
+    try:
+        return _mesh_arrays(key, np.dtype(_dtype(config)).name)
+    except ConfigError:
+        raise
+    except (ValueError, OSError) as err:
+        what = f"cannot load mesh {occ.file}" if occ.file else f"cannot build mesh {occ.shape!r}"
+        raise ConfigError(config.source, where, f"{what}: {err}") from None
+
+
+@functools.lru_cache(maxsize=16)
+def _latlong_array(path: str) -> np.ndarray:
+    from ..lights import read_latlong
+
+    return np.asarray(read_latlong(path))
+
+
+def _environment_image(config: Config) -> np.ndarray:
+    try:
+        return _latlong_array(config.environment.file)
+    except (ValueError, OSError) as err:
+        raise ConfigError(config.source, "environment.file", str(err)) from None
+
+
+def clear_file_cache() -> None:
+    """Forget the meshes and environment maps read so far (e.g. after a file changed on disk)."""
+    _mesh_arrays.cache_clear()
+    _latlong_array.cache_clear()
+
+
+def _occluder(config: Config, i: int, occ: OccluderConfig, dtype):
+    center, radius = occ.center.astype(dtype), occ.radius.astype(dtype)
+    if occ.type == "sphere":
+        return SphereOccluder(center=center, radius=radius)
+    from ..geometry import make_deformation
+
+    unit, faces, name = _unit_mesh(config, i, occ)
+    deform = None
+    if occ.deform is not None:
+        params = occ.deform.params()
+        if "period" in params:
+            params["period"] = params["period"].astype(dtype)
+        try:
+            deform = make_deformation(occ.deform.type, occ.deform.amount.astype(dtype), **params)
+        except ValueError as err:
+            raise ConfigError(config.source, f"occluder[{i}].deform", str(err)) from None
+    return MeshOccluder(
+        unit_vertices=jnp.asarray(unit, dtype),
+        faces=jnp.asarray(faces, jnp.int32),
+        center=center,
+        radius=radius,
+        deform=deform,
+        name=name,
+    )
+
+
+def build_scene(config: Config) -> Scene:
+    """The :class:`jshadow.entities.Scene` that ``config`` describes.
+
+    * ``Method`` from ``[method]``; arrays in its dtype (float32 unless float64 is requested and
+      JAX's x64 mode is on).
+    * Receivers: :func:`plane_receivers` of ``[receiver]`` (row-major, rows along z).
+    * Occluders in config order: ``SphereOccluder``, or ``MeshOccluder`` whose rest pose is the mesh
+      normalised to its unit bounding sphere (AABB centre, radius to the farthest vertex) and placed
+      at ``center`` with bounding radius ``radius``, deformed by ``make_deformation(type, amount,
+      ...)``.
+    * Lights: ``SphereLight``; environment: ``Environment`` ("hdr": the lat-long map from
+      :func:`jshadow.lights.read_latlong`, rotated by :func:`rotate_latlong_y`).
+    * ``n_frames`` = ``[animation] frames``; ``self_shadow`` from ``[receiver]``.
+
+    Traceable and differentiable in every float leaf of ``config`` (``eqx.tree_at`` + ``jax.jvp``).
+    Raises :class:`ConfigError` naming the key when a mesh or map cannot be read.
+    """
+    if not isinstance(config, Config):
+        raise ConfigError(
+            None, None, f"build_scene expects a Config (from load_config), got {type(config).__name__}"
+        )
+    dtype = _dtype(config)
+    rc = config.receiver
+    receivers = plane_receivers(
+        rc.center.astype(dtype), rc.size.astype(dtype), rc.resolution, rc.albedo.astype(dtype)
+    )
+    occluders = tuple(_occluder(config, i, occ, dtype) for i, occ in enumerate(config.occluder))
+    lights = tuple(
+        SphereLight(
+            center=lc.center.astype(dtype), radius=lc.radius.astype(dtype), radiance=lc.radiance.astype(dtype)
+        )
+        for lc in config.light
+    )
+    environment = None
+    ec = config.environment
+    if ec is not None:
+        radiance = ec.radiance.astype(dtype)
+        if ec.type == "hdr":
+            image = rotate_latlong_y(
+                jnp.asarray(_environment_image(config), dtype), ec.rotation_y.astype(dtype)
+            )
+            environment = Environment(radiance=radiance, image=image, kind="hdr")
+        else:
+            environment = Environment(radiance=radiance, kind=ec.type)
+    return Scene(
+        method=config.method.to_method(),
+        receivers=receivers,
+        occluders=occluders,
+        lights=lights,
+        environment=environment,
+        self_shadow=rc.self_shadow,
+        n_frames=config.animation.frames,
+    )
