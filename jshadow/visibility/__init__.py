@@ -1,8 +1,26 @@
 """Visibility: exact any-hit ray queries and the base sphere visibility (BSV) sampler.
 
-See :mod:`jshadow.visibility._raycast` for the ray casters and their watertightness guarantees.
+* :mod:`._raycast`: watertight brute-force any-hit queries (triangles, shared-origin fans, spheres),
+  memory bounded for any mesh size.
+* :mod:`._frames`: the BSV shell parametrisation (polar axis world +z) and local frames.
+* :mod:`._directions`: hemisphere direction sets and closed-form cap / hemisphere SH projections.
+* :mod:`._bsv`: the BSV module, brute-force and analytic samplers, and reuse across frames.
 """
 
+from ._bsv import BSV as BSV
+from ._bsv import BSVCache as BSVCache
+from ._bsv import bsv_mesh as bsv_mesh
+from ._bsv import bsv_sample_points as bsv_sample_points
+from ._bsv import bsv_sphere as bsv_sphere
+from ._bsv import bsv_sphere_traced as bsv_sphere_traced
+from ._bsv import bsv_unit_vertices as bsv_unit_vertices
+from ._bsv import bsv_update as bsv_update
+from ._bsv import is_closed_manifold as is_closed_manifold
+from ._directions import cap_sh_projection as cap_sh_projection
+from ._directions import far_hemisphere_sh_projection as far_hemisphere_sh_projection
+from ._directions import hemisphere_directions as hemisphere_directions
+from ._frames import bsv_frames as bsv_frames
+from ._frames import bsv_grid_angles as bsv_grid_angles
 from ._raycast import ray_fan_any_hit as ray_fan_any_hit
 from ._raycast import ray_sphere_any_hit as ray_sphere_any_hit
 from ._raycast import ray_triangle_any_hit as ray_triangle_any_hit
