@@ -1,0 +1,563 @@
+"""Fast BSV of a closed mesh: silhouette-edge scanline on a gnomonic cone image ("edge-scan").
+
+The base sphere visibility (BSV; deformable-shadow-fields paper Sec. 4.1, after Zhou et al. 2005,
+"Precomputed shadow fields" Sec. 4) needs, at each of the T×P shell points ``p = c + R·u``
+(R = shell · r > r, conventions in :mod:`jshadow.visibility._frames`), the occluded directions
+of the sphere. Seen from outside its bounding sphere, the mesh lies inside the cone of half-angle
+``α = asin(r/R)`` around the local +z axis (toward the centre). The cone is sampled by a gnomonic
+(perspective) image on the plane z = 1 of the local frame: ``N_y × N_x`` pixels over
+``[−tan α, tan α]²``; pixel ``(i, j)`` (row i along local y, column j along local x) has its centre at
+``x_j = −tan α + (j + ½)·Δx``, ``y_i = −tan α + (i + ½)·Δy`` and its ray direction is
+``(x_j, y_i, 1) / |(x_j, y_i, 1)|``. Directions outside the image are free of the mesh.
+
+Method (notes/bsv-speed.md, "edge-scan"). For a closed, consistently oriented mesh seen from an
+outside point, the number of front-facing layers over an image point is the winding number of
+the projected *silhouette* edges around it (edges between two front faces or two back faces
+cancel). An edge (a, b) whose half-edge a→b belongs to face t₁ and b→a to t₂ carries the weight
+``w = front(t₁) − front(t₂)`` and, in the trapezoid form of that winding number, adds
+``w·sgn(x_b − x_a)`` to every pixel centre with ``x_j ∈ [min x, max x)`` below which the edge
+passes (``y_i > y_edge(x_j)``). One scatter-add per (silhouette edge, crossed column) into a
+difference image with ``N_y + 1`` rows, a prefix sum over rows (a triangular matmul) gives the
+layer count, and a pixel is occluded iff its count is non-zero. The column an edge starts at is
+a per-vertex integer ``⌈(x − x₀)/Δx⌉``, computed once per (vertex, view), so edges that share a
+vertex agree on it and the count is exact at pixel centres (up to rounding when a centre lies
+on a projected edge). Facing is one sign per (face, view), so every face is counted consistently.
+
+Stages (each a separate ``jax.jit``; on XLA:CPU one fused jit recomputes gathers and is slower):
+
+1. project: bounding sphere, shell points, the (vertex, view) image coordinates and start columns,
+   and the (face, view) facing bits;
+2. compact: the (edge, view) candidates (silhouette and crossing at least one column), packed 32
+   per word; per view, slot s finds the word holding the candidate of rank s (prefix of popcounts,
+   a small scatter and a running maximum) and the bit inside it (select-nth-set-bit), so the
+   ``S`` slots per view are filled without a scatter over all (edge, view) pairs;
+3. emit: per slot, up to ``K`` column crossings, each one scatter-add into the difference image;
+4. project onto SH: row prefix sum by matmul, ``count ≠ 0``, ``coeffs = √(4π)·e0 − occ @ (w·Y)``
+   with exact per-pixel solid angles ``w``.
+
+``S`` (slots per view), ``S2`` (edges spanning more than one column, all views) and ``K``
+(columns per edge) are static. When a pose needs more, the
+``overflow`` flag is set; :func:`bsv_mesh_edgescan` then recomputes with larger slots (concrete
+input) or raises at run time (traced input): the result is never silently wrong.
+
+Limitations: closed, edge-manifold, consistently wound meshes only (:func:`build_edge_table`
+checks this); ``shell > 1``; the output is binary visibility sampled on a grid and has no useful
+gradient with respect to the vertices (notes/visibility-gradients.md gives the boundary term).
+"""
+
+from __future__ import annotations
+
+import math
+from functools import lru_cache, partial
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import lax
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
+
+from ..geometry import bounding_sphere
+from ..sh import sh_basis
+from ._bsv import BSV
+from ._frames import bsv_frames, bsv_grid_angles
+
+__all__ = [
+    "EdgeTable",
+    "build_edge_table",
+    "edgescan_cone_directions",
+    "edgescan_occlusion",
+    "edgescan_slots",
+    "bsv_mesh_edgescan",
+]
+
+_WORD = 32  # edges per packed word
+
+
+class EdgeTable(eqx.Module):
+    """Static edge table of a closed, consistently wound, edge-manifold triangle mesh.
+
+    Attributes (E undirected edges, padded with inert entries to ``E_pad``, a multiple of 32 and
+    at least E + 1; padding has ``a = b = 0`` and ``t1 = t2 = 0``, so it never contributes):
+        a, b: (E_pad,) int32 vertex ids, the half-edge a→b belongs to face ``t1``;
+        t1, t2: (E_pad,) int32 the faces holding a→b and b→a.
+        num_edges: E (static). num_vertices, num_faces: static sizes the table was built for.
+    """
+
+    a: Int[Array, " E_pad"]
+    b: Int[Array, " E_pad"]
+    t1: Int[Array, " E_pad"]
+    t2: Int[Array, " E_pad"]
+    num_edges: int = eqx.field(static=True)
+    num_vertices: int = eqx.field(static=True)
+    num_faces: int = eqx.field(static=True)
+
+
+def build_edge_table(faces: Int[ArrayLike, "F 3"], num_vertices: int | None = None) -> EdgeTable:
+    """Edge table of a closed mesh, built once per topology (host side, numpy).
+
+    Raises ``ValueError`` unless the faces form a closed, edge-manifold, consistently wound
+    surface: no face repeats a vertex, every directed edge a→b occurs exactly once and its reverse
+    b→a occurs too. ``faces`` must be concrete (not traced).
+    """
+    try:
+        f = np.asarray(faces)
+    except jax.errors.TracerArrayConversionError as err:
+        raise ValueError("build_edge_table needs concrete faces (build it outside jit)") from err
+    if f.ndim != 2 or f.shape[1] != 3 or not np.issubdtype(f.dtype, np.integer) or f.shape[0] == 0:
+        raise ValueError(f"faces must be a non-empty int array of shape (F, 3), got {f.dtype} {f.shape}")
+    f = f.astype(np.int64)
+    nv = int(f.max()) + 1 if num_vertices is None else int(num_vertices)
+    if f.min() < 0 or f.max() >= nv:
+        raise ValueError(f"face indices must lie in [0, {nv}), got [{f.min()}, {f.max()}]")
+    if np.any((f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 2] == f[:, 0])):
+        raise ValueError("faces must not repeat a vertex (degenerate face found)")
+    nf = f.shape[0]
+    src = f.reshape(-1)
+    dst = np.roll(f, -1, axis=1).reshape(-1)
+    face_of = np.repeat(np.arange(nf), 3)
+    key = src * nv + dst
+    order = np.argsort(key, kind="stable")
+    ks = key[order]
+    if np.any(ks[1:] == ks[:-1]):
+        raise ValueError(
+            "mesh is not consistently wound or not edge-manifold: a directed edge occurs twice "
+            "(edge-scan needs a closed, consistently oriented manifold mesh)"
+        )
+    rev = dst * nv + src
+    pos = np.searchsorted(ks, rev)
+    found = (pos < ks.size) & (ks[np.minimum(pos, ks.size - 1)] == rev)
+    if not np.all(found):
+        raise ValueError(
+            f"mesh is not closed: {int(np.sum(~found))} directed edges have no opposite half-edge "
+            "(edge-scan needs a closed, consistently oriented manifold mesh)"
+        )
+    twin_face = face_of[order[pos]]
+    keep = src < dst  # one entry per undirected edge: the half-edge running low -> high id
+    a, b, t1, t2 = src[keep], dst[keep], face_of[keep], twin_face[keep]
+    ne = a.size
+    e_pad = -(-(ne + 1) // _WORD) * _WORD
+
+    def pad(x):
+        return jnp.asarray(np.concatenate([x, np.zeros(e_pad - ne, np.int64)]).astype(np.int32))
+
+    return EdgeTable(pad(a), pad(b), pad(t1), pad(t2), ne, nv, nf)
+
+
+def _check_pair(value, name):
+    if not (
+        isinstance(value, tuple | list)
+        and len(value) == 2
+        and all(isinstance(g, int | np.integer) and not isinstance(g, bool) and g >= 1 for g in value)
+    ):
+        raise ValueError(f"{name} must be two positive ints, got {value!r}")
+    return int(value[0]), int(value[1])
+
+
+def _check_shell(shell):
+    if not (isinstance(shell, int | float | np.floating) and math.isfinite(shell) and shell > 1.0):
+        raise ValueError(
+            f"edge-scan needs shell > 1 (sample points outside the bounding sphere), got {shell!r}; "
+            "use bsv_mesh(method='brute') for shell = 1"
+        )
+    return float(shell)
+
+
+@lru_cache(maxsize=32)
+def _np_cone(ny: int, nx: int, shell: float):
+    """Pixel-centre directions (ny·nx, 3), exact pixel solid angles (ny·nx,), half-width tan α."""
+    tan_a = 1.0 / math.sqrt(shell * shell - 1.0)
+    xe = np.linspace(-tan_a, tan_a, nx + 1)
+    ye = np.linspace(-tan_a, tan_a, ny + 1)
+    xc = 0.5 * (xe[1:] + xe[:-1])
+    yc = 0.5 * (ye[1:] + ye[:-1])
+    d = np.stack(np.broadcast_arrays(xc[None, :], yc[:, None], 1.0), axis=-1).reshape(-1, 3)
+    d = d / np.linalg.norm(d, axis=-1, keepdims=True)
+    # solid angle of [x0, x1] × [y0, y1] on the plane z = 1: the integral of the gnomonic density
+    # dx dy / (1 + x² + y²)^{3/2}, whose antiderivative is atan(x·y / √(1 + x² + y²))
+    prim = np.arctan(xe[None, :] * ye[:, None] / np.sqrt(1.0 + xe[None, :] ** 2 + ye[:, None] ** 2))
+    w = prim[1:, 1:] - prim[1:, :-1] - prim[:-1, 1:] + prim[:-1, :-1]
+    return d, w.reshape(-1), tan_a
+
+
+def edgescan_cone_directions(
+    directions: tuple[int, int] = (32, 32), shell: float = 1.5, dtype=None
+) -> tuple[Float[Array, "K 3"], Float[Array, " K"]]:
+    """Local pixel-centre directions (K = N_y·N_x, 3), row-major (row = local y), and solid angles (K,).
+
+    The gnomonic image covers ``[−tan α, tan α]²`` on the local plane z = 1 with
+    ``sin α = 1/shell``; the weights are the exact solid angles of the pixels (steradians), i.e.
+    the integral of ``dx dy / (1 + x² + y²)^{3/2}`` over each pixel.
+    """
+    ny, nx = _check_pair(directions, "directions")
+    d, w, _ = _np_cone(ny, nx, _check_shell(shell))
+    dtype = jnp.result_type(float) if dtype is None else dtype
+    return jnp.asarray(d, dtype), jnp.asarray(w, dtype)
+
+
+# --------------------------------------------------------------------------------------------
+# Stage 1: projection of vertices and facing of faces, per view
+# --------------------------------------------------------------------------------------------
+
+
+@partial(jax.jit, static_argnames=("grid", "directions", "shell"))
+def _stage_project(vertices, faces, *, grid, directions, shell):
+    ny, nx = directions
+    tan_a = 1.0 / math.sqrt(shell * shell - 1.0)
+    dtype = vertices.dtype
+    center, radius = bounding_sphere(vertices)
+    theta, phi = bsv_grid_angles(*grid, dtype)
+    u, frames = bsv_frames(theta[:, None], phi[None, :])
+    points = (center + (shell * radius) * u).reshape(-1, 3)  # p (G, 3)
+    frames = frames.reshape(-1, 3, 3)  # world = frame @ local
+    rel = [vertices[:, None, m] - points[None, :, m] for m in range(3)]  # x − p: (V, G) each
+
+    def local(k):  # q_k = frame[:, :, k] · (x − p), as explicit multiply-adds
+        fk = frames[None, :, :, k]
+        return rel[0] * fk[..., 0] + rel[1] * fk[..., 1] + rel[2] * fk[..., 2]
+
+    qx, qy, qz = local(0), local(1), local(2)  # qz ≥ R − r > 0 for every vertex
+    px, py = qx / qz, qy / qz  # gnomonic image coordinates (V, G)
+    dx = 2.0 * tan_a / nx
+    col = jnp.clip(jnp.ceil((px + tan_a) / dx - 0.5), 0, nx).astype(jnp.int32)  # first column x_j ≥ x
+
+    tri = vertices[faces]  # (F, 3, 3)
+    nrm = jnp.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # (F, 3), outward for CCW faces
+    side = (
+        nrm[:, None, 0] * (tri[:, None, 0, 0] - points[None, :, 0])
+        + nrm[:, None, 1] * (tri[:, None, 0, 1] - points[None, :, 1])
+        + nrm[:, None, 2] * (tri[:, None, 0, 2] - points[None, :, 2])
+    )
+    front = side < 0  # (F, G): the face turns its front toward p
+    return center, radius, px, py, col, front
+
+
+# --------------------------------------------------------------------------------------------
+# Stage 2: compaction of the (edge, view) candidates into S slots per view
+# --------------------------------------------------------------------------------------------
+
+
+def _select_bit(x, nth):
+    """Position of the ``nth`` (0-based) set bit of the uint32 ``x`` (elementwise, binary search)."""
+    pos = jnp.zeros(x.shape, jnp.uint32)
+    nth = nth.astype(jnp.int32)
+    for width in (16, 8, 4, 2, 1):
+        mask = jnp.uint32((1 << width) - 1)
+        c = lax.population_count((x >> pos) & mask).astype(jnp.int32)
+        skip = nth >= c
+        nth = jnp.where(skip, nth - c, nth)
+        pos = jnp.where(skip, pos + jnp.uint32(width), pos)
+    return pos.astype(jnp.int32)
+
+
+def _pack(mask):
+    """Bool (R, 32·W) -> uint32 words (R, W), bit k of word w = ``mask[:, 32w + k]``."""
+    r, length = mask.shape
+    bits = mask.reshape(r, length // _WORD, _WORD).astype(jnp.uint32)
+    shifts = jnp.arange(_WORD, dtype=jnp.uint32)
+    return jnp.sum(bits << shifts, axis=-1, dtype=jnp.uint32)  # distinct bits: the sum is an OR
+
+
+def _compact(words, slots):
+    """Positions of the set bits of each row of ``words`` (R, W), in order, in ``slots`` slots.
+
+    Returns ``pos`` (R, slots) int32 (bit position ``32w + k``; −1 past the row's count) and the
+    count of set bits per row (R,). Slot s finds the word holding the set bit of rank s (exclusive
+    prefix of popcounts, a scatter of word ids at their first rank and a running maximum) and the
+    bit inside it (select-nth-set-bit): no scatter over all bits.
+    """
+    r, n_words = words.shape
+    counts = lax.population_count(words).astype(jnp.int32)
+    before = jnp.cumsum(counts, axis=1) - counts  # set bits in earlier words
+    total = before[:, -1] + counts[:, -1]
+    row = jnp.arange(r, dtype=jnp.int32)[:, None]
+    wid = jnp.broadcast_to(jnp.arange(n_words, dtype=jnp.int32)[None, :], (r, n_words))
+    dest = jnp.where((counts > 0) & (before < slots), row * slots + before, r * slots)  # else dropped
+    first = jnp.full((r * slots,), -1, jnp.int32).at[dest.reshape(-1)].set(wid.reshape(-1), mode="drop")
+    word = jnp.maximum(lax.cummax(first.reshape(r, slots), axis=1), 0)  # (R, slots)
+    rank = jnp.arange(slots, dtype=jnp.int32)[None, :]
+    nth = rank - jnp.take_along_axis(before, word, axis=1)
+    bit = _select_bit(jnp.take_along_axis(words, word, axis=1), nth)
+    return jnp.where(rank < total[:, None], word * _WORD + bit, -1), total
+
+
+@partial(jax.jit, static_argnames=("slots",))
+def _stage_compact(front, col, a, b, t1, t2, *, slots):
+    e_pad = a.shape[0]
+    cand = (front[t1] != front[t2]) & (col[a] != col[b])  # row gathers: (E_pad, G)
+    pos, total = _compact(_pack(cand.T), slots)  # per view: (G, S)
+    sentinel = e_pad - 1  # a padding edge: never contributes
+    return jnp.where(pos >= 0, pos, sentinel), jnp.max(total)
+
+
+# --------------------------------------------------------------------------------------------
+# Stage 3: column crossings of the slotted edges, scattered into the difference image
+# --------------------------------------------------------------------------------------------
+
+
+@partial(jax.jit, static_argnames=("directions", "shell", "long_slots", "span"))
+def _stage_emit(slot_edge, px, py, col, front, a, b, t1, *, directions, shell, long_slots, span):
+    ny, nx = directions
+    tan_a = 1.0 / math.sqrt(shell * shell - 1.0)
+    dx, dy = 2.0 * tan_a / nx, 2.0 * tan_a / ny
+    dtype = px.dtype
+    g, slots = slot_edge.shape
+    view = jnp.arange(g, dtype=jnp.int32)[:, None]
+    va, vb = a[slot_edge], b[slot_edge]  # (G, S)
+    fa, fb = va * g + view, vb * g + view  # flat (vertex, view) indices
+    pxf, pyf, colf = px.reshape(-1), py.reshape(-1), col.reshape(-1)
+    xa, ya, ca = pxf[fa], pyf[fa], colf[fa]
+    xb, yb, cb = pxf[fb], pyf[fb], colf[fb]
+    f1 = front.reshape(-1)[t1[slot_edge] * g + view]
+    # silhouette weight front(t1) − front(t2) = ±1 (slots hold silhouette edges or the inert pad),
+    # times the direction of the edge along x
+    sgn = jnp.where(f1, 1.0, -1.0).astype(dtype) * jnp.sign(cb - ca).astype(dtype)
+    lo, hi = jnp.minimum(ca, cb), jnp.maximum(ca, cb)
+    crosses = hi > lo
+    run = jnp.where(crosses, xb - xa, 1.0)  # double where: no division by zero for idle slots
+    slope = jnp.where(crosses, (yb - ya) / run, 0.0)
+    base = jnp.broadcast_to(view * ((ny + 1) * nx), (g, slots))
+    size = g * (ny + 1) * nx
+
+    def crossing(k, lo, hi, xa, ya, slope, base):
+        j = lo + k
+        xj = (j.astype(dtype) + 0.5) * dx - tan_a
+        y = ya + (xj - xa) * slope
+        row = jnp.clip(jnp.floor((y + tan_a) / dy - 0.5) + 1.0, 0, ny).astype(jnp.int32)  # rows y_i ≤ y
+        return jnp.where(j < hi, base + row * nx + j, size)
+
+    # every slot emits its first crossing; the few edges spanning more columns are gathered into
+    # one global list of ``long_slots`` entries that emit the crossings 1 … span − 1
+    idx = [crossing(0, lo, hi, xa, ya, slope, base).reshape(-1)]
+    val = [sgn.reshape(-1)]
+    params = [x.reshape(-1) for x in (lo, hi, xa, ya, slope, base, sgn)]
+    pos, n_long = _compact(_pack((hi - lo > 1).reshape(1, -1)), long_slots)
+    pos = pos[0]
+    lo2, hi2, xa2, ya2, slope2, base2, sgn2 = [x[jnp.maximum(pos, 0)] for x in params]
+    hi2 = jnp.where(pos >= 0, hi2, lo2)
+    for k in range(1, span):
+        idx.append(crossing(k, lo2, hi2, xa2, ya2, slope2, base2))
+        val.append(sgn2)
+    diff = jnp.zeros((size,), dtype).at[jnp.concatenate(idx)].add(jnp.concatenate(val), mode="drop")
+    return diff.reshape(g, ny + 1, nx), n_long[0], jnp.max(hi - lo)
+
+
+# --------------------------------------------------------------------------------------------
+# Stage 4: layer counts, occlusion, SH projection
+# --------------------------------------------------------------------------------------------
+
+
+@jax.jit
+def _stage_occlusion(diff):
+    ny = diff.shape[1] - 1
+    tril = (jnp.arange(ny + 1)[None, :] <= jnp.arange(ny)[:, None]).astype(diff.dtype)  # (N_y, N_y + 1)
+    count = jnp.einsum("ir,grj->gij", tril, diff)
+    return count != 0  # (G, N_y, N_x)
+
+
+@partial(jax.jit, static_argnames=("n",))
+def _stage_sh(diff, basis_w, *, n):
+    g, _, nx = diff.shape
+    occ = _stage_occlusion(diff).reshape(g, -1).astype(basis_w.dtype)
+    full = jnp.zeros(n * n, basis_w.dtype).at[0].set(math.sqrt(4.0 * math.pi))
+    return full - occ @ basis_w
+
+
+# --------------------------------------------------------------------------------------------
+# Drivers
+# --------------------------------------------------------------------------------------------
+
+
+def _prepare(vertices, faces, edge_table):
+    vertices = jnp.asarray(vertices)
+    if vertices.ndim != 2 or vertices.shape[-1] != 3 or vertices.shape[0] == 0:
+        raise ValueError(f"vertices must have shape (V, 3) with V >= 1, got {vertices.shape}")
+    if not jnp.issubdtype(vertices.dtype, jnp.floating):
+        vertices = vertices.astype(jnp.result_type(float))
+    faces = jnp.asarray(faces)
+    if faces.ndim != 2 or faces.shape[-1] != 3 or not jnp.issubdtype(faces.dtype, jnp.integer):
+        raise ValueError(f"faces must be an int array of shape (F, 3), got {faces.dtype} {faces.shape}")
+    if edge_table is None:
+        edge_table = build_edge_table(faces, vertices.shape[0])
+    if edge_table.num_faces != faces.shape[0] or edge_table.num_vertices > vertices.shape[0]:
+        raise ValueError(
+            f"edge_table was built for {edge_table.num_faces} faces and {edge_table.num_vertices} "
+            f"vertices, got {faces.shape[0]} faces and {vertices.shape[0]} vertices"
+        )
+    return vertices, faces.astype(jnp.int32), edge_table
+
+
+def _round_up(x, m):
+    return int(-(-x // m) * m)
+
+
+def _run(vertices, faces, table, grid, directions, shell, slots):
+    s, s2, k = slots
+    _, _, px, py, col, front = _stage_project(vertices, faces, grid=grid, directions=directions, shell=shell)
+    slot_edge, most = _stage_compact(front, col, table.a, table.b, table.t1, table.t2, slots=s)
+    diff, n_long, longest = _stage_emit(
+        slot_edge,
+        px,
+        py,
+        col,
+        front,
+        table.a,
+        table.b,
+        table.t1,
+        directions=directions,
+        shell=shell,
+        long_slots=s2,
+        span=k,
+    )
+    return diff, most, n_long, longest
+
+
+def edgescan_slots(
+    vertices: Float[ArrayLike, "V 3"],
+    faces: Int[ArrayLike, "F 3"],
+    grid: tuple[int, int] = (12, 20),
+    directions: tuple[int, int] = (32, 32),
+    shell: float = 1.5,
+    *,
+    margin: float = 1.5,
+    edge_table: EdgeTable | None = None,
+) -> tuple[int, int, int]:
+    """Static slot sizes ``(S, S2, K)`` measured on a pose (e.g. the rest pose), times ``margin``.
+
+    ``S``: silhouette edges crossing at least one pixel column, per view (maximum over views),
+    rounded up to a multiple of 32. ``S2``: (edge, view) pairs crossing more than one column, over
+    all views. ``K``: columns crossed by one edge (maximum), at most the image width. Needs concrete
+    vertices.
+    """
+    grid = _check_pair(grid, "grid")
+    directions = _check_pair(directions, "directions")
+    shell = _check_shell(shell)
+    if not (isinstance(margin, int | float) and margin >= 1.0):
+        raise ValueError(f"margin must be a number >= 1, got {margin!r}")
+    vertices, faces, table = _prepare(vertices, faces, edge_table)
+    _, _, _, _, col, front = _stage_project(vertices, faces, grid=grid, directions=directions, shell=shell)
+    col, front = np.asarray(col), np.asarray(front)
+    a, b, t1, t2 = (np.asarray(x) for x in (table.a, table.b, table.t1, table.t2))
+    span = np.abs(col[a] - col[b]) * (front[t1] != front[t2])  # (E_pad, G)
+    e_pad = int(a.shape[0])
+    s = min(_round_up(max(1, math.ceil(int(np.max(np.sum(span > 0, axis=0))) * margin)), _WORD), e_pad)
+    s2 = max(1, math.ceil(int(np.sum(span > 1)) * margin))
+    k = min(max(1, math.ceil(int(np.max(span)) * margin)), directions[1])
+    return s, s2, k
+
+
+def _check_slots(slots, e_pad, width):
+    if not (
+        isinstance(slots, tuple | list)
+        and len(slots) == 3
+        and all(isinstance(x, int | np.integer) and not isinstance(x, bool) and x >= 1 for x in slots)
+    ):
+        raise ValueError(f"slots must be three positive ints (S, S2, K) (see edgescan_slots), got {slots!r}")
+    s, s2, k = (int(x) for x in slots)
+    return min(_round_up(s, _WORD), e_pad), s2, min(k, width)
+
+
+def _resolve(vertices, faces, grid, directions, shell, edge_table, slots):
+    grid = _check_pair(grid, "grid")
+    directions = _check_pair(directions, "directions")
+    shell = _check_shell(shell)
+    vertices, faces, table = _prepare(vertices, faces, edge_table)
+    if slots is None:
+        if isinstance(vertices, jax.core.Tracer):
+            raise ValueError(
+                "slots=(S, S2, K) must be given when the vertices are traced: see edgescan_slots"
+            )
+        slots = edgescan_slots(vertices, faces, grid, directions, shell, edge_table=table)
+    slots = _check_slots(slots, int(table.a.shape[0]), directions[1])
+    return vertices, faces, table, grid, directions, shell, slots
+
+
+def _compute(vertices, faces, table, grid, directions, shell, slots):
+    """Difference images, retrying with larger slots on overflow (concrete) or flagging it (traced)."""
+    e_pad, width = int(table.a.shape[0]), directions[1]
+    while True:
+        s, s2, k = slots
+        diff, most, n_long, longest = _run(vertices, faces, table, grid, directions, shell, slots)
+        overflow = (most > s) | (n_long > s2) | (longest > k)
+        if isinstance(overflow, jax.core.Tracer) or not bool(overflow):
+            return diff, overflow
+        bigger = (max(2 * s, int(most)), max(2 * s2, int(n_long)), max(2 * k, int(longest)))
+        slots = _check_slots(bigger, e_pad, width)
+
+
+def edgescan_occlusion(
+    vertices: Float[ArrayLike, "V 3"],
+    faces: Int[ArrayLike, "F 3"],
+    grid: tuple[int, int] = (12, 20),
+    directions: tuple[int, int] = (32, 32),
+    shell: float = 1.5,
+    *,
+    edge_table: EdgeTable | None = None,
+    slots: tuple[int, int, int] | None = None,
+) -> tuple[Bool[Array, "T P Ny Nx"], Bool[Array, ""]]:
+    """Occlusion images (T, P, N_y, N_x) of the gnomonic cone rays, and the ``overflow`` flag.
+
+    ``occ[i, j, y, x]`` is True iff the ray from the shell point ``p_ij`` through the centre of
+    pixel (y, x) (directions of :func:`edgescan_cone_directions`, in the local frame at
+    (θ_i, φ_j)) hits the mesh at t > 0. With concrete vertices an overflow of the static slots
+    is repaired by recomputing with larger ones (the flag is then False); with traced vertices the
+    flag reports it and the images are not to be trusted.
+    """
+    vertices, faces, table, grid, directions, shell, slots = _resolve(
+        vertices, faces, grid, directions, shell, edge_table, slots
+    )
+    diff, overflow = _compute(vertices, faces, table, grid, directions, shell, slots)
+    return _stage_occlusion(diff).reshape(*grid, *directions), jnp.asarray(overflow)
+
+
+def bsv_mesh_edgescan(
+    vertices: Float[ArrayLike, "V 3"],
+    faces: Int[ArrayLike, "F 3"],
+    n: int = 4,
+    grid: tuple[int, int] = (12, 20),
+    directions: tuple[int, int] = (32, 32),
+    shell: float = 1.5,
+    *,
+    edge_table: EdgeTable | None = None,
+    slots: tuple[int, int, int] | None = None,
+) -> BSV:
+    """BSV of a closed mesh by the silhouette-edge scanline on a gnomonic cone image.
+
+    Args:
+        vertices: (V, 3) float, world units. faces: (F, 3) int, closed, consistently wound,
+            edge-manifold (checked by :func:`build_edge_table`).
+        n: SH bands (n² coefficients). grid: (T, P) shell points (see ``_frames``).
+        directions: (N_y, N_x) pixels of the gnomonic image of the cone holding the bounding
+            sphere (half-angle ``asin(1/shell)``); pixel centres are the ray directions.
+        shell: R / r > 1.
+        edge_table: :func:`build_edge_table` of ``faces`` (built here if None; build it once per
+            topology to save the host work).
+        slots: static ``(S, S2, K)`` from :func:`edgescan_slots` on the rest pose (computed from
+            ``vertices`` if None; required when ``vertices`` are traced).
+
+    Returns:
+        :class:`BSV` with ``coeffs`` (T, P, n²) = ``√(4π)·e0 − Σ_pixels occ·w·Y``: directions
+        outside the image are free and enter exactly through the constant term.
+
+    Overflow of the static slots is never silent: with concrete vertices the computation is
+    redone with larger slots (one more compile); under tracing it raises at run time
+    (``eqx.error_if``). The coefficients have zero derivative with respect to the vertices
+    (binary visibility); ``center`` and ``radius`` are differentiable.
+    """
+    if not (isinstance(n, int | np.integer) and n >= 1):
+        raise ValueError(f"n (number of SH bands) must be a positive int, got {n!r}")
+    vertices, faces, table, grid, directions, shell, slots = _resolve(
+        vertices, faces, grid, directions, shell, edge_table, slots
+    )
+    diff, overflow = _compute(vertices, faces, table, grid, directions, shell, slots)
+    if isinstance(overflow, jax.core.Tracer):
+        diff = eqx.error_if(diff, overflow, "edge-scan slots overflowed: pass larger slots=(S, S2, K)")
+    basis_w = _basis_weights(directions, shell, int(n), vertices.dtype)
+    coeffs = _stage_sh(diff, basis_w, n=int(n)).reshape(*grid, n * n)
+    center, radius = bounding_sphere(vertices)
+    return BSV(coeffs, center, radius, shell * radius)
+
+
+def _basis_weights(directions, shell, n, dtype):
+    d, w = edgescan_cone_directions(directions, shell, dtype)
+    return sh_basis(d, n) * w[:, None]
