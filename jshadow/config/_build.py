@@ -96,16 +96,22 @@ def _mesh_arrays(key: tuple, dtype_name: str) -> tuple[np.ndarray, np.ndarray, s
         else:
             mesh = icosphere(key[2], dtype=dtype_name)
             name = "icosphere"
-        unit = normalize_to_unit_sphere(mesh.vertices)
+        v = np.asarray(mesh.vertices)
+        up = key[-1]
+        if up == "z":  # rotation about x by -90°: +z -> +y, +y -> -z
+            v = np.stack([v[:, 0], v[:, 2], -v[:, 1]], axis=1)
+        elif up == "x":  # rotation about z by +90°: +x -> +y, +y -> -x
+            v = np.stack([-v[:, 1], v[:, 0], v[:, 2]], axis=1)
+        unit = normalize_to_unit_sphere(jnp.asarray(v))
         return np.asarray(unit), np.asarray(mesh.faces), name
 
 
 def _unit_mesh(config: Config, i: int, occ: OccluderConfig) -> tuple[np.ndarray, np.ndarray, str]:
     if occ.file is not None:
-        key = ("file", occ.file)
+        key = ("file", occ.file, occ.up)
         where = f"occluder[{i}].file"
     else:
-        key = ("shape", occ.shape, occ.subdivisions, float(occ.stretch))
+        key = ("shape", occ.shape, occ.subdivisions, float(occ.stretch), occ.up)
         where = f"occluder[{i}].shape"
     try:
         return _mesh_arrays(key, np.dtype(_dtype(config)).name)

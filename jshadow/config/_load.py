@@ -259,7 +259,7 @@ def _occluder(t: _Table, dtype) -> OccluderConfig:
     center = _leaf(t.vector("center", 3), dtype)
     radius = _leaf(t.number("radius", check="positive"), dtype)
     if kind == "sphere":
-        for key in ("file", "shape", "subdivisions", "stretch", "deform"):
+        for key in ("file", "shape", "subdivisions", "stretch", "up", "deform"):
             if t.has(key):
                 raise t.error(key, "only a mesh occluder takes this key (this one is a sphere)")
         return OccluderConfig(type=kind, center=center, radius=radius)
@@ -279,6 +279,7 @@ def _occluder(t: _Table, dtype) -> OccluderConfig:
         raise t.error("stretch", 'only shape = "egg" takes a stretch')
     if not stretch < 1.0:
         raise t.error("stretch", f"expected a number in [0, 1), got {stretch}")
+    up = t.string("up", "y", choices=("x", "y", "z"))
     deform = None
     if t.has("deform"):
         allowed = ("type", "amount", "axis", "toward", "origin", "period")
@@ -292,6 +293,7 @@ def _occluder(t: _Table, dtype) -> OccluderConfig:
         shape=shape,
         subdivisions=subdivisions,
         stretch=stretch,
+        up=up,
         deform=deform,
     )
 
@@ -418,7 +420,7 @@ def config_from_dict(d: Mapping, source: str = "<dict>", root: str | os.PathLike
     environment = None
     if top.has("environment"):
         environment = _environment(table("environment", ("type", "radiance", "file", "rotation_y")), dtype)
-    occ_keys = ("type", "center", "radius", "file", "shape", "subdivisions", "stretch", "deform")
+    occ_keys = ("type", "center", "radius", "file", "shape", "subdivisions", "stretch", "up", "deform")
     occluders = tuple(
         _occluder(_Table(source, root, o, f"occluder[{i}]", f"occluder[{i}]", occ_keys), dtype)
         for i, o in enumerate(d.get("occluder", []))

@@ -174,7 +174,10 @@ class OccluderConfig(eqx.Module):
     """``[[occluder]]``: a sphere, or a mesh whose bounding sphere is placed at ``center``/``radius``.
 
     A mesh comes from ``file`` (resolved path) or from a procedural ``shape`` ("egg" | "icosphere",
-    with ``subdivisions`` and, for the egg, ``stretch``); ``deform`` is optional (meshes only).
+    with ``subdivisions`` and, for the egg, ``stretch``); ``up`` ("x" | "y" | "z", default "y") names
+    the mesh file's up axis, which is turned onto the world's +y by a 90° rotation (for "z": about x,
+    (x, y, z) → (x, z, −y); for "x": about z, (x, y, z) → (−y, x, z)); ``deform`` is optional (meshes
+    only) and acts in the rotated, normalised frame.
     """
 
     type: str = eqx.field(static=True)
@@ -184,6 +187,7 @@ class OccluderConfig(eqx.Module):
     shape: str | None = eqx.field(static=True, default=None)
     subdivisions: int = eqx.field(static=True, default=3)
     stretch: float = eqx.field(static=True, default=0.2)
+    up: str = eqx.field(static=True, default="y")
     deform: DeformConfig | None = None
 
     def __check_init__(self):
@@ -195,6 +199,8 @@ class OccluderConfig(eqx.Module):
             raise ConfigError(None, "occluder.file", "a mesh needs exactly one of 'file' or 'shape'")
         if self.type == "sphere" and (self.file, self.shape, self.deform) != (None, None, None):
             raise ConfigError(None, "occluder", "a sphere takes no 'file', 'shape' or 'deform'")
+        if self.up not in ("x", "y", "z"):
+            raise ConfigError(None, "occluder.up", f"expected 'x', 'y' or 'z', got {self.up!r}")
         if self.shape is not None and self.shape not in MESH_SHAPES:
             raise ConfigError(None, "occluder.shape", f"expected one of {', '.join(MESH_SHAPES)}")
 
