@@ -141,6 +141,10 @@ class Bend(eqx.Module):
 
     def __call__(self, x: Float[Array, "... V 3"], t=0.0) -> Float[Array, "... V 3"]:
         x = _check_points(x)
+        return self._apply(x, jnp.asarray(t, x.dtype))
+
+    @eqx.filter_jit
+    def _apply(self, x, t):
         k = _amount_at(self.amount_start, self.amount_end, t, x.dtype)
         ha, u = x[..., self.axis], x[..., self.toward]
         h = ha - self.origin
@@ -172,6 +176,10 @@ class Twist(eqx.Module):
 
     def __call__(self, x: Float[Array, "... V 3"], t=0.0) -> Float[Array, "... V 3"]:
         x = _check_points(x)
+        return self._apply(x, jnp.asarray(t, x.dtype))
+
+    @eqx.filter_jit
+    def _apply(self, x, t):
         a = _amount_at(self.amount_start, self.amount_end, t, x.dtype)
         bi, ci = _others(self.axis)
         xb, xc = x[..., bi], x[..., ci]
@@ -203,6 +211,10 @@ class Taper(eqx.Module):
 
     def __call__(self, x: Float[Array, "... V 3"], t=0.0) -> Float[Array, "... V 3"]:
         x = _check_points(x)
+        return self._apply(x, jnp.asarray(t, x.dtype))
+
+    @eqx.filter_jit
+    def _apply(self, x, t):
         a = _amount_at(self.amount_start, self.amount_end, t, x.dtype)
         bi, ci = _others(self.axis)
         d = a * (x[..., self.axis] - self.origin)  # factor − 1
@@ -246,6 +258,10 @@ class SquashStretch(eqx.Module):
 
     def __call__(self, x: Float[Array, "... V 3"], t=0.0) -> Float[Array, "... V 3"]:
         x = _check_points(x)
+        return self._apply(x, jnp.asarray(t, x.dtype))
+
+    @eqx.filter_jit
+    def _apply(self, x, t):
         a = _amount_at(self.amount_start, self.amount_end, t, x.dtype)
         return _squash(x, a, self.axis, self.origin)
 
@@ -279,6 +295,10 @@ class Breathe(eqx.Module):
 
     def __call__(self, x: Float[Array, "... V 3"], t=0.0) -> Float[Array, "... V 3"]:
         x = _check_points(x)
+        return self._apply(x, jnp.asarray(t, x.dtype))
+
+    @eqx.filter_jit
+    def _apply(self, x, t):
         amp = _amount_at(self.amount_start, self.amount_end, t, x.dtype)
         t = jnp.asarray(t, x.dtype)[..., None]
         s_m1 = amp * jnp.sin((2.0 * math.pi) * t / jnp.asarray(self.period, x.dtype))

@@ -241,6 +241,11 @@ def vertex_normals(vertices: Float[Array, "... V 3"], faces: Int[Array, "F 3"]) 
             f"vertex_normals expects vertices (..., V, 3) and faces (F, 3), got {vertices.shape} and "
             f"{faces.shape}"
         )
+    return _vertex_normals_batched(vertices, faces)
+
+
+@jax.jit
+def _vertex_normals_batched(vertices, faces):
     fn = _vertex_normals_single
     for _ in range(vertices.ndim - 2):
         fn = jax.vmap(fn, in_axes=(0, None))
