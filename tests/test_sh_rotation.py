@@ -100,20 +100,25 @@ def test_batch_shapes(shape):
     assert rotate(c.reshape(-1, 16)[0], R).shape == (*shape, 16)
 
 
+def _loss(axis, theta):
+    R = _rot_jax(axis, theta)
+    c = jnp.linspace(-1.0, 1.0, 25, dtype=R.dtype)
+    return jnp.sum(rotate(c, R) ** 3) + jnp.sum(rotation_matrix(R, 5) ** 3)
+
+
+# one compilation for every parametrisation below (axis and angle are traced arguments)
+_grad_loss = jax.jit(jax.grad(_loss, argnums=1))
+_jac_rotmat = jax.jit(jax.jacrev(lambda R: rotation_matrix(R, 5)))
+
+
 @pytest.mark.usefixtures("x64")
 @pytest.mark.parametrize("axis", [[1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0], [0, 0, -1.0]])
 @pytest.mark.parametrize("angle", [0.0, np.pi / 2, np.pi])
 def test_gradients_finite_at_axes_and_identity(axis, angle):
-    c = jnp.linspace(-1.0, 1.0, 25)
-
-    def loss(theta):
-        R = _rot_jax(jnp.asarray(axis), theta)
-        return jnp.sum(rotate(c, R) ** 3) + jnp.sum(rotation_matrix(R, 5) ** 3)
-
-    g = jax.grad(loss)(jnp.asarray(angle))
+    g = _grad_loss(jnp.asarray(axis), jnp.asarray(angle))
     assert np.isfinite(g)
-    jr = jax.jacrev(lambda R: rotation_matrix(R, 5))(jnp.asarray(_axis_rot(axis, angle)))
-    assert np.all(np.isfinite(jr))
+    jr = _jac_rotmat(jnp.asarray(_axis_rot(axis, angle)))
+    assert jr.shape == (25, 25, 3, 3) and np.all(np.isfinite(jr))
 
 
 def _rot_jax(axis, theta):
