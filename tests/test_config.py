@@ -268,6 +268,17 @@ def test_bad_mesh_occluders(tmp_assets, occ, expected):
         assert s in msg, msg
 
 
+def test_structural_errors():
+    with pytest.raises(ConfigError, match=r"occluder: expected an array of tables \[\[occluder\]\]"):
+        config_from_dict(base_dict(occluder={"type": "sphere"}))
+    with pytest.raises(ConfigError, match=r"receiver: expected a table \[receiver\]"):
+        config_from_dict(base_dict(receiver=[1, 2]))
+    with pytest.raises(ConfigError, match=r"light\[1\]\.radius: missing required key"):
+        config_from_dict(
+            base_dict(light=[base_dict()["light"][0], {"center": [0, 1, 0], "radiance": [1, 1, 1]}])
+        )
+
+
 def test_hdr_needs_an_existing_file(tmp_path):
     env = {"type": "hdr", "file": "missing.hdr"}
     with pytest.raises(ConfigError, match=r"environment\.file: .*not found"):
@@ -287,6 +298,9 @@ FIT_BAD = [
     ({"params": ["light.0.radius"], "target_values": [1.0, 2.0]}, ["fit.target_values", "1 value"]),
     ({"params": ["light.0.radius"]}, ["fit.target_values", "exactly one"]),
     ({"params": ["light.0.radius"], "target_values": [1.0], "stesp": 3}, ["did you mean 'steps'"]),
+    ({"params": ["light.0.radius"], "target_values": ["1.0"]}, ["fit.target_values[0]", "string"]),
+    ({"params": ["light.0.radius"], "target_values": [1.0], "frame": 1}, ["fit.frame", "0..0"]),
+    ({"params": "light.0.radius", "target_values": [1.0]}, ["fit.params", "list of strings"]),
     (
         {"params": ["light.0.radius"], "target_values": [1.0], "learning_rate": 0},
         ["fit.learning_rate", "positive"],
@@ -329,6 +343,8 @@ def test_fit_section_and_param_paths():
         set_param(cfg, "light.0.center", 1.0)
     with pytest.raises(ConfigError, match="finite"):
         set_param(cfg, "occluder.0.radius", float("nan"))
+    with pytest.raises(ConfigError, match=r"occluder\.0\.radius: expected positive"):
+        set_param(cfg, "occluder.0.radius", -0.5)
     with pytest.raises(ConfigError, match="is a list: expected an index"):
         get_param(cfg, "occluder.center")
 

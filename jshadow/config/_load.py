@@ -347,21 +347,15 @@ def _fit_values(t: _Table, name: str, params, shapes, dtype) -> tuple | None:
         key = f"{name}[{i}]"
         want = "a number" if shape == () else f"a list of {shape[0]} numbers"
         if shape == ():
-            x = (
-                t._number(key, x, None)
-                if _is_number(x)
-                else _raise(t, key, f"expected {want}, got {_describe(x)}")
-            )
+            if not _is_number(x):
+                raise t.error(key, f"expected {want}, got {_describe(x)}")
+            x = t._number(key, x, None)
         else:
             if not isinstance(x, list) or len(x) != shape[0]:
                 raise t.error(key, f"expected {want} (the shape of {params[i]}), got {_describe(x)}")
             x = [t._number(key, y, None, where=f" at index {j}") for j, y in enumerate(x)]
         out.append(_leaf(x, dtype))
     return tuple(out)
-
-
-def _raise(t: _Table, key: str, message: str):
-    raise t.error(key, message)
 
 
 def _fit(t: _Table, partial: Config, dtype) -> FitConfig:
@@ -404,6 +398,15 @@ def config_from_dict(d: Mapping, source: str = "<dict>", root: str | os.PathLike
     float64 is requested but x64 is disabled). Raises :class:`ConfigError`.
     """
     root = pathlib.Path(root if root is not None else os.getcwd())
+    try:
+        return _from_dict(d, source, root)
+    except ConfigError as err:
+        if err.source is None:  # raised by a config object's own checks: add the file
+            raise ConfigError(source, err.key, err.message) from None
+        raise
+
+
+def _from_dict(d: Mapping, source: str, root: pathlib.Path):
     top = _Table(source, root, d, "", "the config (top level)", _TOP)
     for name in _ARRAYS:
         if top.has(name) and not (isinstance(d[name], list) and all(isinstance(x, Mapping) for x in d[name])):
@@ -451,6 +454,10 @@ def config_from_dict(d: Mapping, source: str = "<dict>", root: str | os.PathLike
     _check_meshes(cfg)
     if top.has("fit"):
         fit = _fit(table("fit", _FIT_KEYS), cfg, dtype)
+        if fit.frame >= animation.frames:
+            raise ConfigError(
+                source, "fit.frame", f"expected a frame in 0..{animation.frames - 1}, got {fit.frame}"
+            )
         cfg = Config(
             method=method,
             receiver=receiver,

@@ -13,6 +13,8 @@ from ._errors import ConfigError, did_you_mean
 
 __all__ = ["get_param", "set_param", "param_paths"]
 
+_POSITIVE = ("radius", "size", "period")  # leaves that must stay > 0
+
 
 def _is_float_leaf(x) -> bool:
     return isinstance(x, jax.Array) and jnp.issubdtype(x.dtype, jnp.floating)
@@ -98,7 +100,8 @@ def set_param(config, path: str, value):
 
     ``value`` must have the leaf's shape; it is cast to the leaf's dtype. Traced values (under
     ``jax.grad``/``jax.jvp``) pass through, so fitting differentiates through this. Concrete values
-    must be finite. Raises :class:`ConfigError` naming the path otherwise.
+    must be finite (and positive for radii, sizes and periods). Raises :class:`ConfigError` naming
+    the path otherwise.
     """
     get, old = _resolve(config, path)
     source = getattr(config, "source", None)
@@ -113,6 +116,10 @@ def set_param(config, path: str, value):
     if new.shape != old.shape:
         raise ConfigError(source, path, f"expected shape {old.shape}, got {new.shape}")
     new = new.astype(old.dtype)
-    if not isinstance(new, jax.core.Tracer) and not np.all(np.isfinite(np.asarray(new))):
-        raise ConfigError(source, path, f"expected finite numbers, got {np.asarray(new).tolist()}")
+    if not isinstance(new, jax.core.Tracer):
+        arr = np.asarray(new)
+        if not np.all(np.isfinite(arr)):
+            raise ConfigError(source, path, f"expected finite numbers, got {arr.tolist()}")
+        if path.rsplit(".", 1)[-1] in _POSITIVE and not np.all(arr > 0):
+            raise ConfigError(source, path, f"expected positive numbers, got {arr.tolist()}")
     return eqx.tree_at(get, config, new)
