@@ -20,6 +20,7 @@ import math
 import os
 from functools import lru_cache
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
@@ -128,8 +129,14 @@ def _pixel_basis(h: int, w: int, n: int, spp: int, rotation_y: float) -> np.ndar
     """B[i, j, c] = ∫_pixel(i,j) Y_c(R_y ω) dω ((H, W, n²), summed in float64), by a spp×spp product rule.
 
     In each pixel: Gauss–Legendre in cos θ and midpoints in φ, with the pixel's exact solid angle
-    (cos θ_top − cos θ_bottom)·Δφ as the total weight.
+    (cos θ_top − cos θ_bottom)·Δφ as the total weight. Evaluated eagerly even when called while
+    tracing (it depends on static sizes only).
     """
+    with jax.ensure_compile_time_eval():
+        return _pixel_basis_eager(h, w, n, spp, rotation_y)
+
+
+def _pixel_basis_eager(h: int, w: int, n: int, spp: int, rotation_y: float) -> np.ndarray:
     x, wq = np.polynomial.legendre.leggauss(spp)
     th_edges = np.linspace(0.0, math.pi, h + 1)
     c_top, c_bot = np.cos(th_edges[:-1]), np.cos(th_edges[1:])
