@@ -481,7 +481,10 @@ def _compute(vertices, faces, table, grid, directions, shell, slots):
         overflow = (most > s) | (n_long > s2) | (longest > k)
         if isinstance(overflow, jax.core.Tracer) or not bool(overflow):
             return diff, overflow
-        bigger = (max(2 * s, int(most)), max(2 * s2, int(n_long)), max(2 * k, int(longest)))
+        # the counts are exact for the slotted edges, so one retry suffices unless S itself overflowed
+        # (then the long-edge count is a lower bound and a second retry may follow)
+        grow = [max(x, math.ceil(1.25 * int(y))) for x, y in ((s, most), (s2, n_long), (k, longest))]
+        bigger = tuple(grow)
         slots = _check_slots(bigger, e_pad, width)
 
 
