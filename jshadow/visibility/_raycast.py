@@ -145,7 +145,12 @@ def _any_hit_kernel(o, d, tmin, tmax, mask, vertices, faces, *, ray_chunk, face_
 
     def per_chunk(args):
         o_c, e1_c, e2_c, dn_c, lo_c, hi_c, ok_c, mask_c = args
-        basis = (e1_c, e2_c, dn_c)
+        # structure of arrays: (r,) per component, so that no size-3 reductions reach the fusions
+        oc = [o_c[:, i] for i in range(3)]
+        basis = [[b[:, i] for i in range(3)] for b in (e1_c, e2_c, dn_c)]
+
+        def proj(p, b):
+            return p[0] * b[0] + p[1] * b[1] + p[2] * b[2]
 
         def body(hit, xs):
             tri_s, swap_s, fid_s, valid_s = xs
@@ -153,10 +158,10 @@ def _any_hit_kernel(o, d, tmin, tmax, mask, vertices, faces, *, ray_chunk, face_
                 # projected corners: (x, y) in the plane orthogonal to the ray, z along it
                 px, py, pz = [], [], []
                 for k in range(3):
-                    p = tri_s[c, k][None, :] - o_c  # (r, 3)
-                    px.append(jnp.sum(p * basis[0], axis=-1))
-                    py.append(jnp.sum(p * basis[1], axis=-1))
-                    pz.append(jnp.sum(p * basis[2], axis=-1))
+                    p = [tri_s[c, k, i] - oc[i] for i in range(3)]  # (r,) each
+                    px.append(proj(p, basis[0]))
+                    py.append(proj(p, basis[1]))
+                    pz.append(proj(p, basis[2]))
                 edge = []
                 for k in range(3):
                     k1 = (k + 1) % 3
