@@ -457,3 +457,16 @@ def test_loading_does_not_warn_for_clean_meshes(tmp_path):
         warnings.simplefilter("error")
         mesh = load_mesh(path)
     assert mesh_is_closed_manifold(mesh.faces)
+
+
+def test_dtype_option(tmp_path):
+    path = tmp_path / "ball.ply"
+    save_mesh(icosphere(0), path)
+    # float64 without x64 falls back to float32 quietly (warnings are errors here)
+    assert load_mesh(path, dtype="float64").vertices.dtype == jnp.float32
+    with jax.enable_x64(True):
+        assert load_mesh(path, dtype="float64").vertices.dtype == jnp.float64
+        assert load_mesh(path).vertices.dtype == jnp.float64
+        assert egg(0, dtype=jnp.float32).vertices.dtype == jnp.float32
+    with pytest.raises(ValueError, match="floating-point dtype"):
+        icosphere(0, dtype="int32")

@@ -8,7 +8,14 @@ import warnings
 import jax.numpy as jnp
 import numpy as np
 
-from ._mesh import Mesh, MeshWarning, mesh_is_closed_manifold, remove_degenerate_faces, validate_mesh
+from ._mesh import (
+    Mesh,
+    MeshWarning,
+    float_dtype,
+    mesh_is_closed_manifold,
+    remove_degenerate_faces,
+    validate_mesh,
+)
 
 __all__ = ["load_mesh", "save_mesh", "merge_duplicate_vertices"]
 
@@ -64,7 +71,7 @@ def load_mesh(path: str | os.PathLike, dtype=None) -> Mesh:
     if name.lower().endswith(".stl") and vertices.size:
         vertices, faces = merge_duplicate_vertices(vertices, faces)
     validate_mesh(vertices, faces, name=name, check_manifold=False)
-    dtype = jnp.result_type(float) if dtype is None else jnp.dtype(dtype)
+    dtype = float_dtype(dtype)
     mesh = Mesh(jnp.asarray(vertices, dtype=dtype), jnp.asarray(faces, dtype=jnp.int32), name=name)
     mesh = remove_degenerate_faces(mesh)
     if not mesh_is_closed_manifold(np.asarray(mesh.faces)):

@@ -38,6 +38,17 @@ class MeshWarning(UserWarning):
     """A mesh is usable but not clean: open or non-manifold, or some faces were dropped."""
 
 
+def float_dtype(dtype=None):
+    """The float dtype to build arrays in: JAX's default float for ``None``; float64 becomes float32
+    when x64 is disabled (no truncation warning). Raises ``ValueError`` for a non-float dtype."""
+    if dtype is None:
+        return jnp.dtype(jnp.result_type(float))
+    dt = jnp.dtype(dtype)
+    if not jnp.issubdtype(dt, jnp.floating):
+        raise ValueError(f"expected a floating-point dtype, got {dt}")
+    return jnp.dtype(jax.dtypes.canonicalize_dtype(dt))
+
+
 def _as_faces(faces) -> Int[Array, "F 3"]:
     faces = jnp.asarray(faces)
     if not jnp.issubdtype(faces.dtype, jnp.integer):

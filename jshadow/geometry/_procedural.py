@@ -11,7 +11,7 @@ import itertools
 import jax.numpy as jnp
 import numpy as np
 
-from ._mesh import Mesh
+from ._mesh import Mesh, float_dtype
 
 __all__ = ["icosphere", "egg"]
 
@@ -71,7 +71,7 @@ def icosphere(subdivisions: int = 2, dtype=None) -> Mesh:
     ``dtype`` defaults to JAX's default float.
     """
     v, f = _unit_icosphere(_check_subdivisions(subdivisions))
-    dtype = jnp.result_type(float) if dtype is None else jnp.dtype(dtype)
+    dtype = float_dtype(dtype)
     return Mesh(jnp.asarray(v, dtype), jnp.asarray(f, jnp.int32), name=f"icosphere({subdivisions})")
 
 
@@ -88,5 +88,5 @@ def egg(subdivisions: int = 2, stretch: float = 0.2, dtype=None) -> Mesh:
     v, f = _unit_icosphere(_check_subdivisions(subdivisions))
     y = v[:, 1]
     v = np.stack([v[:, 0], y * (1.0 + stretch * (1.0 + y)), v[:, 2]], axis=1)
-    dtype = jnp.result_type(float) if dtype is None else jnp.dtype(dtype)
+    dtype = float_dtype(dtype)
     return Mesh(jnp.asarray(v, dtype), jnp.asarray(f, jnp.int32), name=f"egg({subdivisions})")
