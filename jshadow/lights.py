@@ -187,6 +187,17 @@ def environment_sh(
         b = _pixel_basis(img.shape[0], img.shape[1], int(n), int(samples_per_pixel), float(rotation_y))
         return jnp.einsum("hwc,hwk->ck", jnp.asarray(b, img.dtype), img).astype(dtype) * rad
     if env.kind == "sky":
+        d_world, d_src, wgt = _sky_nodes(n, float(rotation_y))  # static nodes, eager under a trace
+        vals = env.radiance_at(jnp.asarray(d_src, dtype))  # (N, 3)
+        basis = sh.sh_basis(jnp.asarray(d_world, dtype), n)  # (N, n²)
+        return jnp.einsum("q,qk,qc->kc", jnp.asarray(wgt, dtype), basis, vals)
+    raise ValueError(f"unknown environment kind {env.kind!r}; expected constant, hdr or sky")
+
+
+@lru_cache(maxsize=8)
+def _sky_nodes(n: int, rotation_y: float):
+    """Quadrature for the sky: world directions, unrotated source directions, weights (numpy)."""
+    with jax.ensure_compile_time_eval():
         t, wt = np.polynomial.legendre.leggauss(n + 2)
         y = np.concatenate([0.5 * (t + 1.0), 0.5 * (t - 1.0)])  # both hemispheres, split at the horizon
         wy = np.concatenate([0.5 * wt, 0.5 * wt])
@@ -195,15 +206,9 @@ def environment_sh(
         vv, uu = np.meshgrid(np.arccos(y) / math.pi, u, indexing="ij")
         d = np.asarray(latlong_to_dir(jnp.asarray(uu), jnp.asarray(vv)), np.float64) @ _rot_y(rotation_y).T
         wgt = (wy[:, None] * np.full(n_phi, 2.0 * math.pi / n_phi)[None, :]).reshape(-1)
-        d_world = jnp.asarray(d.reshape(-1, 3), dtype)
         # radiance_at is evaluated at the *unrotated* direction, the basis at the rotated one
-        d_src = jnp.asarray(
-            np.asarray(latlong_to_dir(jnp.asarray(uu), jnp.asarray(vv))).reshape(-1, 3), dtype
-        )
-        vals = env.radiance_at(d_src)  # (N, 3)
-        basis = sh.sh_basis(d_world, n)  # (N, n²)
-        return jnp.einsum("q,qk,qc->kc", jnp.asarray(wgt, dtype), basis, vals)
-    raise ValueError(f"unknown environment kind {env.kind!r}; expected constant, hdr or sky")
+        d_src = np.asarray(latlong_to_dir(jnp.asarray(uu), jnp.asarray(vv))).reshape(-1, 3)
+        return d.reshape(-1, 3), d_src, wgt
 
 
 # ---- spherical lights ----------------------------------------------------------------------------
