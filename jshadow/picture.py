@@ -56,22 +56,22 @@ def default_camera(plane_center, plane_size, width=640, height=480) -> Camera:
     """A camera above and in front of the plane (+z side), looking at a point a little above it."""
     c = np.asarray(plane_center, float)
     s = float(max(plane_size))
-    eye = c + np.array([0.35 * s, 0.85 * s, 1.25 * s])
-    return Camera(eye, c + np.array([0.0, 0.12 * s, 0.0]), 40.0, width, height)
+    eye = c + np.array([0.4 * s, 1.0 * s, 1.55 * s])
+    return Camera(eye, c + np.array([0.0, 0.22 * s, 0.0]), 40.0, width, height)
 
 
 def exposure_for(radiance: np.ndarray) -> float:
-    """Exposure that maps the 95th percentile of luminance to 0.8 (before tone mapping)."""
+    """Exposure that maps the 95th percentile of luminance to 0.7 (before tone mapping)."""
     lum = np.asarray(radiance) @ np.array([0.2126, 0.7152, 0.0722])
     p = float(np.percentile(lum, 95)) if lum.size else 1.0
-    return 0.8 / p if p > 0 and np.isfinite(p) else 1.0
+    return 0.7 / p if p > 0 and np.isfinite(p) else 1.0
 
 
 def tonemap(rgb: np.ndarray, exposure: float) -> np.ndarray:
     """Linear RGB → 8-bit sRGB with exposure and a gentle Reinhard shoulder."""
     x = np.clip(np.asarray(rgb, float) * exposure, 0.0, None)
     x = x / (1.0 + 0.25 * x)
-    x = np.clip(x * 1.25, 0.0, 1.0)
+    x = np.clip(x * 1.25, 0.0, 1.0)  # 1.25: the shoulder's value at x = 4 is 1
     srgb = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
     return (np.clip(srgb, 0, 1) * 255 + 0.5).astype(np.uint8)
 
@@ -84,7 +84,7 @@ def _icosphere(level=2):
 
 
 def draw_frame(
-    path,
+    path,  # a file name or a binary file object
     camera: Camera,
     plane: dict | None,
     meshes: Sequence[dict] = (),
@@ -176,8 +176,11 @@ def draw_frame(
         ax.text(8, 18, title, color="white", fontsize=10, family="monospace")
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=100)
-    with open(path, "wb") as fh:
-        fh.write(buf.getvalue())
+    if hasattr(path, "write"):
+        path.write(buf.getvalue())
+    else:
+        with open(path, "wb") as fh:
+            fh.write(buf.getvalue())
 
 
 def sphere_mesh(center, radius, level=2):

@@ -138,7 +138,13 @@ def combine(
     vis: list,
     dist: list,
 ) -> Float[Array, "N 3"]:
-    """Irradiance (N, 3) from the occluders' visibilities and the scene's lights."""
+    """Irradiance (N, 3) from the occluders' visibilities and the scene's lights.
+
+    Cost per receiver: the environment's product with the transfer is one small GEMM against the
+    constant matrix of "multiply by L_env" (no per-receiver triple product); a sphere light's
+    radiance is a scalar cap times a colour, so its product with the transfer is one scalar triple
+    product; visibilities multiply pairwise (one triple product per extra occluder).
+    """
     n = scene.method.sh_bands
     dtype = points.dtype
     transfer = sh.clamped_cosine(normals, n)  # (N, n²): max(0, n·ω)
@@ -150,20 +156,21 @@ def combine(
         if v_all is None:
             e = e + transfer @ l_env  # double product, exact
         else:
-            lt = sh.sh_product(transfer[:, None, :], l_env.T[None, :, :])  # (N, 3, n²)
-            e = e + jnp.einsum("ni,nci->nc", v_all, lt)
+            m_env = sh.product_matrix(l_env.T)  # (3, n², n²): "multiply by L_env", per channel
+            vm = jnp.einsum("ni,cik->nck", v_all, m_env)  # (N, 3, n²)
+            e = e + jnp.einsum("nck,nk->nc", vm, transfer)
 
     for light in scene.lights:
-        l_sh = sphere_light_sh(light.center, light.radius, light.radiance, points, n)  # (N, n², 3)
+        one = jnp.ones((1,), dtype)
+        cap = sphere_light_sh(light.center, light.radius, one, points, n)[..., 0]  # (N, n²)
         if not vis:
-            e = e + jnp.einsum("ni,nic->nc", transfer, l_sh)
+            e = e + jnp.sum(transfer * cap, -1, keepdims=True) * light.radiance
             continue
         d_l = jnp.linalg.norm(points - light.center, axis=-1)
         unit = unit_visibility((points.shape[0],), n, dtype)
         near = [jnp.where((dj < d_l)[:, None], vj, unit) for vj, dj in zip(vis, dist, strict=True)]
-        v_near = _product(near)
-        lt = sh.sh_product(transfer[:, None, :], jnp.swapaxes(l_sh, -1, -2))  # (N, 3, n²)
-        e = e + jnp.einsum("ni,nci->nc", v_near, lt)
+        lt = sh.sh_product(transfer, cap)  # (N, n²)
+        e = e + jnp.sum(_product(near) * lt, -1, keepdims=True) * light.radiance
     return e
 
 
