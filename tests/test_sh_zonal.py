@@ -159,3 +159,12 @@ def test_bad_input():
         zonal_rotate(jnp.ones(3), jnp.ones(2))
     with pytest.raises(ValueError, match="scalar"):
         zonal_rotate(jnp.ones(()), jnp.ones(3))
+
+
+@pytest.mark.usefixtures("x64")
+def test_python_number_takes_axis_dtype():
+    # with x64 on, a Python float must not promote float32 axes to float64 (strict promotion)
+    axis = jnp.asarray([0.0, 0.0, 1.0], jnp.float32)
+    c = cap(axis, 0.5, 3)
+    assert c.dtype == jnp.float32
+    np.testing.assert_allclose(c[0], np.sqrt(np.pi) * 0.5, rtol=eps(jnp.float32))

@@ -20,6 +20,7 @@ import math
 from collections.abc import Callable
 from functools import lru_cache
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
@@ -27,6 +28,9 @@ from jaxtyping import Array, ArrayLike, Float
 from ._basis import sh_basis
 
 __all__ = ["sphere_grid", "hemisphere_grid", "project", "project_fn"]
+
+# full float32 accuracy on accelerators too (no TF32/bf16 passes in these small products)
+_HIGHEST = jax.lax.Precision.HIGHEST
 
 # Default "high-accuracy" grid of project_fn: exact for band-limited integrands up to degree 255
 # in z and 255 in φ; first-order accurate (about 1e-3 relative) for indicator functions.
@@ -149,7 +153,7 @@ def project(
     if values.ndim < 1 or values.shape[-1] != n_dirs:
         raise ValueError(f"values must have shape (..., {n_dirs}) to match dirs, got {values.shape}")
     basis_w = sh_basis(dirs, int(n)) * weights[:, None]  # (N, n²): w_k Y_i(ω_k)
-    return jnp.matmul(values, basis_w)
+    return jnp.matmul(values, basis_w, precision=_HIGHEST)
 
 
 def project_fn(

@@ -34,6 +34,9 @@ from ._grids import _np_sh_basis
 
 __all__ = ["rotation_matrix", "rotate"]
 
+# full float32 accuracy on accelerators too (no TF32/bf16 passes in these small products)
+_HIGHEST = jax.lax.Precision.HIGHEST
+
 _PERM = (1, 2, 0)  # band 1 order (Y_1-1, Y_10, Y_11) ∝ (y, z, x)
 
 
@@ -92,7 +95,7 @@ def _band_blocks(R: Array, n: int) -> list[Array]:
         _, pinvs = _fit_tables(n)
         for l in range(2, n):
             a_t = jnp.stack(ys[l * l : (l + 1) ** 2], axis=-2)  # (..., j, K) = A_lᵀ
-            d_t = jnp.matmul(a_t, jnp.asarray(pinvs[l].T, dtype=R.dtype))  # (..., j, i) = D_lᵀ
+            d_t = jnp.matmul(a_t, jnp.asarray(pinvs[l].T, dtype=R.dtype), precision=_HIGHEST)  # D_lᵀ
             blocks.append(jnp.swapaxes(d_t, -1, -2))
     return blocks
 
@@ -151,5 +154,5 @@ def rotate(coeffs: Float[ArrayLike, "... n2"], R: Float[ArrayLike, "... 3 3"]) -
         _, pinvs = _fit_tables(n)
         for l in range(2, n):
             f_l = sum(coeffs[..., j, None] * ys[j] for j in range(l * l, (l + 1) ** 2))  # f_l(Rᵀ ω_k)
-            out.append(jnp.matmul(f_l, jnp.asarray(pinvs[l].T, dtype=R.dtype)))
+            out.append(jnp.matmul(f_l, jnp.asarray(pinvs[l].T, dtype=R.dtype), precision=_HIGHEST))
     return jnp.concatenate(out, axis=-1)

@@ -29,6 +29,9 @@ from ._grids import _np_sh_basis, _np_sphere_grid
 
 __all__ = ["gaunt_tensor", "sh_product", "product_matrix"]
 
+# full float32 accuracy on accelerators too (no TF32/bf16 passes in these small products)
+_HIGHEST = jax.lax.Precision.HIGHEST
+
 
 def _check_bands(n: int, n_out: int | None) -> tuple[int, int]:
     n_out = n if n_out is None else n_out
@@ -125,7 +128,7 @@ def _sh_product_dense(a: Array, b: Array, n_out: int | None = None) -> Array:
     i, j, k, v = _gaunt(n, n_out)
     g = np.zeros((n_out * n_out, n * n, n * n))
     g[i, j, k] = v
-    return jnp.einsum("ijk,...j,...k->...i", jnp.asarray(g, dtype=a.dtype), a, b)
+    return jnp.einsum("ijk,...j,...k->...i", jnp.asarray(g, dtype=a.dtype), a, b, precision=_HIGHEST)
 
 
 @partial(jax.jit, static_argnames=("n_out",))
@@ -144,7 +147,7 @@ def product_matrix(a: Float[ArrayLike, "... n2"], n_out: int | None = None) -> F
     a = jnp.asarray(a)
     n, n_out = _check_bands(_check_coeffs("a", a), n_out)
     s = _product_matrix_table(n, n_out)  # (n², n_out² · n²): row j holds G[:, j, :]
-    m = jnp.matmul(a, jnp.asarray(s, dtype=a.dtype))
+    m = jnp.matmul(a, jnp.asarray(s, dtype=a.dtype), precision=_HIGHEST)
     return m.reshape(*a.shape[:-1], n_out * n_out, n * n)
 
 

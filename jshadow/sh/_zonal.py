@@ -130,6 +130,9 @@ def cap(
 
     ``axis`` (..., 3) unit vectors and ``cos_alpha`` (...) broadcast against each other.
     """
+    axis = jnp.asarray(axis)
+    if isinstance(cos_alpha, int | float):  # a Python number takes the axes' dtype
+        cos_alpha = jnp.asarray(cos_alpha, dtype=axis.dtype)
     return zonal_rotate(zonal_cap(cos_alpha, n), axis)
 
 
