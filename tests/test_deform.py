@@ -382,3 +382,29 @@ def test_make_deformation_is_differentiable_with_traced_amounts(rng):
     d = make_deformation("twist", 0.2)
     g_tree = jax.grad(lambda d: d(x, 0.0).sum())(d)
     assert bool(jnp.isfinite(g_tree.amount_start)) and float(g_tree.amount_end) == 0.0
+
+
+@pytest.mark.usefixtures("x64")
+def test_jacobian_determinants_closed_form(rng):
+    # local volume change det(∂x'/∂x): bend 1 − κu, twist 1, taper (1 + a h)², squash-stretch 1
+    p = jnp.asarray(rng.uniform(-0.8, 0.8, size=(5, 3)))
+    a, o = 0.6, -0.3
+    h, u = p[:, 1] - o, p[:, 0]
+    cases = [
+        (Bend(a, origin=o), 1.0 - a * u),
+        (Twist(a, origin=o), jnp.ones(5)),
+        (Taper(a, origin=o), (1.0 + a * h) ** 2),
+        (SquashStretch(a, origin=o), jnp.ones(5)),
+    ]
+    for d, expected in cases:
+        jac = jax.vmap(jax.jacfwd(lambda q, d=d: d(q[None], 0.0)[0]))(p)
+        np.testing.assert_allclose(jnp.linalg.det(jac), expected, rtol=eps(jnp.float64, 10))
+
+
+@pytest.mark.usefixtures("x64")
+def test_inverse_amounts_undo_twist_and_squash(rng):
+    p = jnp.asarray(rng.normal(size=(6, 3)))
+    np.testing.assert_allclose(Twist(-0.9)(Twist(0.9)(p)), p, atol=eps(jnp.float64))
+    a = 0.6
+    back = SquashStretch(1.0 / (1.0 + a) - 1.0)(SquashStretch(a)(p))
+    np.testing.assert_allclose(back, p, atol=eps(jnp.float64))
