@@ -3,8 +3,10 @@
 A :class:`~jshadow.entities.MeshOccluder`'s world vertices at animation time t ∈ [0, 1] are
 ``center + radius · deform(unit_vertices, t)``, where ``unit_vertices`` lie in the unit bounding
 sphere at the origin (DESIGN.md §3). Deformations therefore act in that normalised frame and their
-amounts are scale-free (per unit of bounding radius). The deformable-shadow-fields paper animates
-occluders with such free-form deformations and recomputes the base sphere visibility every frame.
+amounts are scale-free (per unit of bounding radius). The deformable-shadow-fields paper handles
+arbitrary non-rigid motion by resampling an occluder's base sphere visibility in every frame in which
+it deforms; the deformations here are simple parametric ones (global bend, twist and taper after
+Barr 1984, "Global and local deformations of solid primitives"), whose few amounts can be fitted.
 
 Every deformation is an ``equinox.Module`` called as ``deform(x, t)``:
 
