@@ -275,45 +275,58 @@ def ray_triangle_any_hit(
 @partial(jax.jit, static_argnames=("face_chunk", "origin_chunk"))
 def _fan_kernel(o, d, vertices, faces, *, face_chunk, origin_chunk):
     n = o.shape[0]
+    dtype = o.dtype
     faces_p, _, valid = _pad_faces(vertices, faces, face_chunk)
     n_chunks = faces_p.shape[0] // face_chunk
-    tri = vertices[faces_p].reshape(n_chunks, face_chunk, 3, 3)
-    swap = _edge_sorted(faces_p).reshape(n_chunks, face_chunk, 3)
-    valid = valid.reshape(n_chunks, face_chunk)
-    tol = eps(o.dtype)
-    nrm = jnp.cross(tri[:, :, 1] - tri[:, :, 0], tri[:, :, 2] - tri[:, :, 0])
-    nlen = jnp.sqrt(jnp.sum(nrm * nrm, axis=-1))  # |(b − a) × (c − a)|: (chunks, C)
-    amax = jnp.max(jnp.abs(tri), axis=(-2, -1))  # coordinate scale of the corners
+    tri = vertices[faces_p]  # (F', corner, xyz)
+    nrm = jnp.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    per_face = [
+        tri.reshape(-1, 9),  # 0..8: corner k, component i at 3k + i
+        _edge_sorted(faces_p).astype(dtype),  # 9..11: edge k runs high -> low vertex index
+        valid.astype(dtype)[:, None],  # 12
+        jnp.sqrt(jnp.sum(nrm * nrm, axis=-1))[:, None],  # 13: |(b − a) × (c − a)|
+        jnp.max(jnp.abs(tri), axis=(-2, -1))[:, None],  # 14: coordinate scale of the corners
+    ]
+    # structure of arrays, (chunks, 15, C): no size-3 reductions or gathers in the hot fusions
+    fdat = jnp.concatenate(per_face, axis=-1).reshape(n_chunks, face_chunk, 15).transpose(0, 2, 1)
+    tol = eps(dtype)
 
     g = min(origin_chunk, n)
     n_pad = -(-n // g) * g
-    o_p = jnp.concatenate([o, jnp.zeros((n_pad - n, 3), o.dtype)]).reshape(n_pad // g, g, 3)
-    d_p = jnp.concatenate([d, jnp.zeros((n_pad - n, *d.shape[1:]), d.dtype)])
+    o_p = jnp.concatenate([o, jnp.zeros((n_pad - n, 3), dtype)]).reshape(n_pad // g, g, 3)
+    d_p = jnp.concatenate([d, jnp.zeros((n_pad - n, *d.shape[1:]), dtype)])
     d_p = d_p.reshape(n_pad // g, g, *d.shape[1:])
 
     def per_chunk(args):
         o_c, d_c = args  # (g, 3), (g, K, 3)
         dx, dy, dz = d_c[..., 0], d_c[..., 1], d_c[..., 2]
-        o_scale = jnp.max(jnp.abs(o_c), axis=-1)
+        oc = [o_c[:, i, None] for i in range(3)]
+        o_scale = jnp.max(jnp.abs(o_c), axis=-1)[:, None]
 
-        def body(hit, xs):
-            tri_s, swap_s, valid_s, nlen_s, amax_s = xs
-            rel = tri_s[None] - o_c[:, None, None, :]  # (g, C, corner, xyz)
-            a, b = rel, jnp.roll(rel, -1, axis=2)  # edge k: corner k -> k+1
-            s = swap_s[None, :, :, None]
-            lo, hi = jnp.where(s, b, a), jnp.where(s, a, b)
-            m = jnp.cross(lo, hi)  # canonical orientation: low -> high vertex index
-            m = jnp.where(s, -m, m)  # (g, C, edge, xyz); edge k is opposite corner k+2
-            vol = jnp.sum(m[:, :, 0] * rel[:, :, 2], axis=-1)  # (a−o)·((b−o)×(c−o)) up to sign: (g, C)
+        def body(hit, fd):
+            rel = [[fd[3 * k + i][None, :] - oc[i] for i in range(3)] for k in range(3)]  # (g, C)
+            m = []  # m[k]: normal of the plane through o and edge k (corner k -> k+1), opposite corner k+2
+            for k in range(3):
+                a, b = rel[k], rel[(k + 1) % 3]
+                s = fd[9 + k][None, :] > 0
+                lo = [jnp.where(s, b[i], a[i]) for i in range(3)]
+                hi = [jnp.where(s, a[i], b[i]) for i in range(3)]
+                # canonical orientation (low -> high vertex index), then the triangle's own sign
+                cr = [
+                    lo[1] * hi[2] - lo[2] * hi[1],
+                    lo[2] * hi[0] - lo[0] * hi[2],
+                    lo[0] * hi[1] - lo[1] * hi[0],
+                ]
+                m.append([jnp.where(s, -x, x) for x in cr])
+            vol = m[0][0] * rel[2][0] + m[0][1] * rel[2][1] + m[0][2] * rel[2][2]  # (a−o)·((b−o)×(c−o))
             # origin within rounding of the triangle's plane (distance |vol|/|N| at the scale of the
-            # coordinates): the triangle is seen edge-on and never hits
-            flat = jnp.abs(vol) <= tol * nlen_s[None] * (amax_s[None] + o_scale[:, None])
-            sgn = jnp.where(valid_s[None] & ~flat, jnp.sign(vol), 0.0)  # 0: origin in the plane, or invalid
-            sgn = sgn[..., None, None]
-            m = m * sgn
+            # coordinates): the triangle is seen edge-on and never hits; so do invalid faces
+            flat = jnp.abs(vol) <= tol * fd[13][None, :] * (fd[14][None, :] + o_scale)
+            sgn = jnp.where((fd[12][None, :] > 0) & ~flat, jnp.sign(vol), 0.0)
+            m = [[x * sgn for x in mk] for mk in m]
             for c in range(face_chunk):
                 s_k = [
-                    dx * m[:, c, k, 0][:, None] + dy * m[:, c, k, 1][:, None] + dz * m[:, c, k, 2][:, None]
+                    dx * m[k][0][:, c, None] + dy * m[k][1][:, c, None] + dz * m[k][2][:, c, None]
                     for k in range(3)
                 ]
                 h = (s_k[0] >= 0) & (s_k[1] >= 0) & (s_k[2] >= 0) & (s_k[0] + s_k[1] + s_k[2] > 0)
@@ -321,7 +334,7 @@ def _fan_kernel(o, d, vertices, faces, *, face_chunk, origin_chunk):
             return hit, None
 
         hit0 = jnp.zeros(d_c.shape[:-1], bool)
-        hit, _ = lax.scan(body, hit0, (tri, swap, valid, nlen, amax))
+        hit, _ = lax.scan(body, hit0, fdat)
         return hit
 
     out = lax.map(per_chunk, (o_p, d_p))
