@@ -54,8 +54,8 @@ KINDS = ("occlusion", "radiance", "radiance_jacobian")
 
 
 def _check(n: int, kind: str, model: str) -> None:
-    if int(n) != n or not 1 <= n <= 8:
-        raise ValueError(f"n (number of SH bands) must be an integer in 1..8, got {n}")
+    if int(n) != n or not 1 <= n <= 16:
+        raise ValueError(f"n (number of SH bands) must be an integer in 1..16, got {n}")
     if kind not in KINDS:
         raise ValueError(f"M_k kind must be one of {KINDS}, got {kind!r}")
     if model not in MODELS:
