@@ -285,6 +285,9 @@ def test_hdr_needs_an_existing_file(tmp_path):
         config_from_dict(base_dict(environment=env), root=tmp_path)
     with pytest.raises(ConfigError, match=r"environment\.file: .*only an environment of type 'hdr'"):
         config_from_dict(base_dict(environment={"type": "constant", "file": "x.hdr"}))
+    (tmp_path / "junk.hdr").write_bytes(b"not a radiance file\n" * 4)
+    with pytest.raises(ConfigError, match=r"environment\.file: .*junk\.hdr"):
+        config_from_dict(base_dict(environment={"type": "hdr", "file": "junk.hdr"}), root=tmp_path)
     with pytest.raises(ConfigError, match=r"config file not found"):
         load_config(tmp_path / "nothing.toml")
 

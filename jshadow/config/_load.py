@@ -409,7 +409,8 @@ def config_from_dict(d: Mapping, source: str = "<dict>", root: str | os.PathLike
 def _from_dict(d: Mapping, source: str, root: pathlib.Path):
     top = _Table(source, root, d, "", "the config (top level)", _TOP)
     for name in _ARRAYS:
-        if top.has(name) and not (isinstance(d[name], list) and all(isinstance(x, Mapping) for x in d[name])):
+        v = d.get(name, [])
+        if not (isinstance(v, list | tuple) and all(isinstance(x, Mapping) for x in v)):
             raise top.error(name, f"expected an array of tables [[{name}]], got {_describe(d[name])}")
     for name in ("method", "environment", "receiver", "animation", "fit"):
         if top.has(name) and not isinstance(d[name], Mapping):
