@@ -359,3 +359,20 @@ def test_validation(bunny):
         bsv_sphere(np.zeros(3), 1.0, n=0)
     with pytest.raises(ValueError, match="center"):
         bsv_sphere(np.zeros(2), 1.0)
+
+
+def test_auto_edgescan_agrees_with_brute_force(bunny):
+    """Two independent BSV algorithms (edge-scan cone image, brute-force hemisphere) on one mesh."""
+    _, v, f = bunny
+    v = v.astype(np.float32)
+    kw = dict(n=4, grid=(6, 8), shell=1.5)
+    auto = bsv_mesh(v, f, **kw)  # closed manifold, shell > 1: the edge-scan path
+    fine = np.asarray(bsv_mesh(v, f, directions=(96, 96), method="brute", **kw).coeffs)
+    coarse = np.asarray(bsv_mesh(v, f, directions=(32, 32), method="brute", **kw).coeffs)
+    # measured: edge-scan 0.0069 max / 0.0012 mean, brute 32² 0.012 / 0.0022 from the 96² result
+    assert np.abs(np.asarray(auto.coeffs) - fine).max() < 0.02
+    assert np.abs(np.asarray(auto.coeffs) - fine).mean() < 0.004
+    assert np.abs(coarse - fine).max() < 0.03
+    np.testing.assert_array_equal(
+        np.asarray(auto.center), np.asarray(bsv_mesh(v, f, method="brute", n=1, grid=(1, 1)).center)
+    )

@@ -5,6 +5,8 @@
 * :mod:`._frames`: the BSV shell parametrisation (polar axis world +z) and local frames.
 * :mod:`._directions`: hemisphere direction sets and closed-form cap / hemisphere SH projections.
 * :mod:`._bsv`: the BSV module, brute-force and analytic samplers, and reuse across frames.
+* :mod:`._edgescan`: the fast BSV for closed meshes on a shell R > r (silhouette-edge scanline).
+* :mod:`._silhouette`, :mod:`._bsv_grad`: silhouette edges and the BSV's vertex gradients.
 """
 
 from ._bsv import BSV as BSV
@@ -16,9 +18,13 @@ from ._bsv import bsv_sphere_traced as bsv_sphere_traced
 from ._bsv import bsv_unit_vertices as bsv_unit_vertices
 from ._bsv import bsv_update as bsv_update
 from ._bsv import is_closed_manifold as is_closed_manifold
+from ._bsv_grad import bsv_mesh_diff as bsv_mesh_diff
+from ._bsv_grad import bsv_sh_tangent as bsv_sh_tangent
 from ._directions import cap_sh_projection as cap_sh_projection
 from ._directions import far_hemisphere_sh_projection as far_hemisphere_sh_projection
 from ._directions import hemisphere_directions as hemisphere_directions
+from ._edgescan import bsv_mesh_edgescan as bsv_mesh_edgescan
+from ._edgescan import edgescan_cone_directions as edgescan_cone_directions
 from ._frames import bsv_frames as bsv_frames
 from ._frames import bsv_grid_angles as bsv_grid_angles
 from ._raycast import ray_fan_any_hit as ray_fan_any_hit
