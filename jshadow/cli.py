@@ -1,4 +1,4 @@
-"""Command line: ``jshadow render | reference | compare | bench``.
+"""Command line: ``jshadow render | reference | compare | fit``.
 
 Bad input (config errors, missing files, invalid numbers) ends with exit status 2 and one line on
 stderr naming the key or file; nothing is written in that case. Output files are written under a
@@ -236,6 +236,120 @@ def cmd_compare(args) -> int:
     return 0
 
 
+def cmd_fit(args) -> int:
+    import jax.numpy as jnp
+
+    from .config import build_scene, get_param, set_param
+    from .entities import frame_time
+    from .optim import fit_params, plane_radiance
+    from .picture import exposure_for
+
+    cfg, scene0 = _load(args.config)
+    fit = cfg.fit
+    if fit is None:
+        raise UsageError(f"{args.config}: no [fit] table (see configs/fit_bend.toml)")
+    paths = list(fit.params)
+    if args.steps is not None:
+        if args.steps < 1:
+            raise UsageError(f"--steps must be a positive integer, got {args.steps}")
+    steps = args.steps or fit.steps
+    init = [jnp.asarray(v, jnp.float32) for v in fit.init] if fit.init is not None else None
+    init = init or [get_param(cfg, p) for p in paths]
+
+    def with_params(values):
+        c = cfg
+        for p, v in zip(paths, values, strict=True):
+            c = set_param(c, p, v)
+        return c
+
+    frame = fit.frame
+    if fit.target_values is not None:
+        target_values = [jnp.asarray(v, jnp.float32) for v in fit.target_values]
+        target_scene = build_scene(with_params(target_values))
+        target = plane_radiance(target_scene, frame)
+    else:
+        target_values = None
+        target = _target_from_image(
+            fit.target_image, scene0, plane_radiance(build_scene(with_params(init)), frame)
+        )
+    out = _make_out(args.out)
+    res = fit_params(
+        lambda v: build_scene(with_params(v)),
+        init,
+        target,
+        steps=steps,
+        learning_rate=fit.learning_rate,
+        progress=True,
+        frame=frame,
+        regularization=fit.regularization,
+    )
+    report = {
+        "params": {p: np.asarray(v).tolist() for p, v in zip(paths, res.params, strict=True)},
+        "init": {p: np.asarray(v).tolist() for p, v in zip(paths, init, strict=True)},
+        "target_values": None
+        if target_values is None
+        else {p: np.asarray(v).tolist() for p, v in zip(paths, target_values, strict=True)},
+        "loss": res.loss,
+        "history": res.history,
+        "steps": steps,
+        "learning_rate": fit.learning_rate,
+    }
+    _save_json(out / "fit.json", report)
+    _loss_plot(out / "loss.png", res.loss)
+    exposure = exposure_for(np.asarray(target))
+    t = frame_time(frame, scene0.n_frames)
+    for name, values in (("before", init), ("after", res.params)):
+        from .scene import render
+
+        sc = build_scene(with_params(values))
+        _picture(out / f"{name}.png", sc, render(sc, frame), t, exposure, f"fit: {name}")
+    if target_values is not None:
+        _picture(out / "target.png", target_scene, render(target_scene, frame), t, exposure, "fit: target")
+    final = ", ".join(f"{p} = {np.round(np.asarray(v), 4).tolist()}" for p, v in report["params"].items())
+    print(f"fit: loss {res.loss[0]:.3e} -> {res.loss[-1]:.3e} in {steps} steps; {final} -> {out}")
+    return 0
+
+
+def _target_from_image(path, scene, current):
+    """Plane radiance target from a picture of the plane: sRGB → linear, resized to the plane grid
+    (nearest), scaled to the mean of the current rendering (a picture carries no absolute scale)."""
+    import imageio.v3 as iio
+
+    rows_cols = scene.receivers.grid_shape
+    if rows_cols is None:
+        raise UsageError("fit.target_image needs a plane receiver")
+    try:
+        img = np.asarray(iio.imread(path), float)
+    except Exception as err:  # imageio raises many types for unreadable files
+        raise UsageError(f"{path}: cannot read the target image ({err})") from None
+    if img.ndim == 2:
+        img = np.repeat(img[..., None], 3, -1)
+    img = img[..., :3] / (255.0 if img.max() > 1.0 else 1.0)
+    lin = np.where(img <= 0.04045, img / 12.92, ((img + 0.055) / 1.055) ** 2.4)
+    rows, cols = rows_cols
+    ri = (np.arange(rows) * lin.shape[0] / rows).astype(int)
+    ci = (np.arange(cols) * lin.shape[1] / cols).astype(int)
+    grid = lin[ri][:, ci].reshape(-1, 3)
+    cur = np.asarray(current)
+    scale = cur.mean() / max(grid.mean(), 1e-12)
+    return np.asarray(grid * scale, np.float32)
+
+
+def _loss_plot(path, loss):
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(5, 3.2), dpi=100)
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot(1, 1, 1)
+    ax.semilogy(np.arange(1, len(loss) + 1), np.maximum(loss, 1e-12))
+    ax.set_xlabel("step")
+    ax.set_ylabel("relative MSE")
+    ax.grid(True, alpha=0.3)
+    fig.tight_layout()
+    _atomic_write(path, lambda fh: fig.savefig(fh, format="png"))
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="jshadow", description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="command", required=True)
@@ -268,6 +382,12 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("b")
     c.add_argument("--out", default=None, help="PNG of the difference (frame 0)")
     c.set_defaults(func=cmd_compare)
+
+    f = sub.add_parser("fit", help="fit config parameters to a target shadow ([fit] table)")
+    f.add_argument("config")
+    f.add_argument("--out", required=True)
+    f.add_argument("--steps", type=int, default=None, help="override fit.steps")
+    f.set_defaults(func=cmd_fit)
     return p
 
 

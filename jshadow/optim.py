@@ -51,6 +51,8 @@ def fit_params(
     learning_rate: float = 0.05,
     optimizer: optax.GradientTransformation | None = None,
     progress: bool = False,
+    frame: int = 0,
+    regularization: float = 0.0,
 ) -> FitResult:
     """Minimise :func:`relative_mse` of the plane radiance over the parameters with optax (Adam).
 
@@ -59,14 +61,24 @@ def fit_params(
             config with the parameters set by ``eqx.tree_at`` is).
         init: starting values.
         target: (N_plane, 3) target radiance.
+        frame: the animation frame rendered.
+        regularization: weight w of the penalty ``w · Σ ‖p − p_init‖²`` added to the loss.
     """
     params = [jnp.asarray(p, jnp.float32) for p in init]
     opt = optimizer or optax.adam(learning_rate)
     state = opt.init(params)
 
+    start = [jnp.asarray(p) for p in params]
+
+    def loss_fn(p):
+        loss = relative_mse(plane_radiance(make_scene(p), frame), target)
+        if regularization:
+            loss = loss + regularization * sum(jnp.sum((a - b) ** 2) for a, b in zip(p, start, strict=True))
+        return loss
+
     @eqx.filter_jit
     def step(params, state):
-        loss, g = jax.value_and_grad(lambda p: relative_mse(plane_radiance(make_scene(p)), target))(params)
+        loss, g = jax.value_and_grad(loss_fn)(params)
         updates, state = opt.update(g, state, params)
         return optax.apply_updates(params, updates), state, loss
 
