@@ -8,6 +8,8 @@ distance |c| > r: ``cos θ = 1 − ξ0 (1 − cos α)``, ``φ = 2π ξ1`` about 
 
 from __future__ import annotations
 
+from functools import partial
+
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
@@ -30,6 +32,7 @@ def _cone(to_center, radius):
     return safe_normalize(c), one_m_cos, inside
 
 
+@jax.jit
 def sample_sphere_cone(
     u: Float[ArrayLike, "... 2"],
     to_center: Float[ArrayLike, "... 3"],
@@ -55,6 +58,7 @@ def sample_sphere_cone(
     return CapSample(safe_normalize(d), pdf, pdf, valid)
 
 
+@partial(jax.jit, static_argnames="num")
 def random_sphere_cone(key: PRNGKeyArray, to_center, radius, num: int) -> CapSample:
     """``num`` cone samples per configuration, u drawn from ``key``: shapes (..., num[, 3])."""
     c = jnp.asarray(to_center)
@@ -64,6 +68,7 @@ def random_sphere_cone(key: PRNGKeyArray, to_center, radius, num: int) -> CapSam
     return sample_sphere_cone(u, c[..., None, :], jnp.asarray(radius, dtype)[..., None])
 
 
+@jax.jit
 def sphere_cone_pdf(
     direction: Float[ArrayLike, "... 3"],
     to_center: Float[ArrayLike, "... 3"],

@@ -13,6 +13,8 @@ unbiased where that matters.
 
 from __future__ import annotations
 
+from functools import partial
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -88,6 +90,7 @@ def _invert_cdf(cdf, x):
     return k, frac
 
 
+@jax.jit
 def sample_environment(sampler: EnvironmentSampler, u: Float[ArrayLike, "... 2"]) -> CapSample:
     """Directions from the environment's luminance distribution. u (..., 2) uniform in [0, 1);
     returns :class:`CapSample` with ``pdf`` per steradian (``pdf_proj`` = ``pdf``: no normal
@@ -110,11 +113,13 @@ def sample_environment(sampler: EnvironmentSampler, u: Float[ArrayLike, "... 2"]
     return CapSample(d, pdf, pdf, pdf > 0)
 
 
+@partial(jax.jit, static_argnames="shape")
 def random_environment(sampler: EnvironmentSampler, key: PRNGKeyArray, shape: tuple[int, ...]) -> CapSample:
     """Samples of shape ``shape`` (+ (3,) for directions), u drawn from ``key``."""
     return sample_environment(sampler, jax.random.uniform(key, (*shape, 2), sampler.pmf.dtype))
 
 
+@jax.jit
 def environment_pdf(sampler: EnvironmentSampler, direction: Float[ArrayLike, "... 3"]) -> Float[Array, "..."]:
     """Solid-angle density of :func:`sample_environment` at unit directions (..., 3); the pixel is
     found exactly as :meth:`Environment.radiance_at` finds it."""

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from functools import partial
+
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
@@ -12,6 +14,7 @@ from ._projected_cap import CapSample, _check3, _tangent
 __all__ = ["sample_cosine_hemisphere", "random_cosine_hemisphere", "cosine_hemisphere_pdf"]
 
 
+@jax.jit
 def sample_cosine_hemisphere(u: Float[ArrayLike, "... 2"], normal: Float[ArrayLike, "... 3"]) -> CapSample:
     """Malley's method: a uniform point of the unit disk (radius √ξ0, angle 2πξ1) lifted to the
     hemisphere around the unit ``normal``. u (..., 2) in [0, 1); leading axes broadcast.
@@ -31,6 +34,7 @@ def sample_cosine_hemisphere(u: Float[ArrayLike, "... 2"], normal: Float[ArrayLi
     return CapSample(safe_normalize(d), pdf, jnp.full_like(pdf, 1.0 / jnp.pi), jnp.ones(pdf.shape, bool))
 
 
+@partial(jax.jit, static_argnames="num")
 def random_cosine_hemisphere(key: PRNGKeyArray, normal: Float[ArrayLike, "... 3"], num: int) -> CapSample:
     """``num`` cosine-weighted samples per normal, u drawn from ``key``: shapes (..., num[, 3])."""
     n = jnp.asarray(normal)
@@ -38,6 +42,7 @@ def random_cosine_hemisphere(key: PRNGKeyArray, normal: Float[ArrayLike, "... 3"
     return sample_cosine_hemisphere(u, n[..., None, :])
 
 
+@jax.jit
 def cosine_hemisphere_pdf(
     direction: Float[ArrayLike, "... 3"], normal: Float[ArrayLike, "... 3"]
 ) -> Float[Array, "..."]:

@@ -30,6 +30,7 @@ angle, ``pdf = (n·ω) · pdf_proj``. For an integrand ``f(ω) max(0, n·ω)`` u
 from __future__ import annotations
 
 import math
+from functools import partial
 from typing import NamedTuple
 
 import jax
@@ -88,6 +89,7 @@ _SERIES = tuple(2.0 * math.comb(2 * m, m) / (4.0**m * (2 * m + 3)) for m in rang
 _FIT = (0.65512094, 0.04376721, 0.00524170, 0.00926736, -0.00543246, 0.00254099)
 
 
+@jax.jit
 def segment_area(x: Float[ArrayLike, "..."]) -> Float[Array, "..."]:
     """``R(x) = acos x − x√(1 − x²)``: area of the unit disk right of the vertical line at x.
 
@@ -107,6 +109,7 @@ def segment_area(x: Float[ArrayLike, "..."]) -> Float[Array, "..."]:
     return jnp.where(x >= 0, right, jnp.pi - right)
 
 
+@jax.jit
 def segment_area_inverse(w: Float[ArrayLike, "..."]) -> Float[Array, "..."]:
     """``R⁻¹(w)`` for w in [0, π] (clipped): the x whose right segment has area w.
 
@@ -216,6 +219,7 @@ def projected_cap_frame(normal, to_center, radius) -> _Cap:
     return _Cap(xhat, yhat, n, wd, wdx, wdz, ry, v, one_m_cos, cx, cz, rx, rz, tx, ty, case)
 
 
+@jax.jit
 def projected_cap_case(normal, to_center, radius) -> Int[Array, "..."]:
     """The :class:`CapCase` label (int32, shape (...)) of each receiver/light configuration."""
     return projected_cap_frame(normal, to_center, radius).case
@@ -243,6 +247,7 @@ def _warp_scale(g: _Cap, z):
     return safe_sqrt(safe_div(num, den, fill=1.0))
 
 
+@jax.jit
 def projected_solid_angle(normal, to_center, radius) -> Float[Array, "..."]:
     """``Ω⊥ = ∫_cap max(0, n·ω) dω`` of a sphere light (closed form; the cap's unoccluded
     irradiance per unit radiance). FULL: ``π sin²α cos β``. CLIP_BELOW uses
@@ -263,6 +268,7 @@ def projected_solid_angle(normal, to_center, radius) -> Float[Array, "..."]:
     return out
 
 
+@jax.jit
 def sample_projected_cap(
     u: Float[ArrayLike, "... 2"],
     normal: Float[ArrayLike, "... 3"],
@@ -343,6 +349,7 @@ def sample_projected_cap(
     return CapSample(d, pdf, pdf_proj, valid)
 
 
+@partial(jax.jit, static_argnames="num")
 def random_projected_cap(
     key: PRNGKeyArray,
     normal: Float[ArrayLike, "... 3"],
@@ -360,6 +367,7 @@ def random_projected_cap(
     return sample_projected_cap(u, n[..., None, :], c[..., None, :], jnp.asarray(radius, dtype)[..., None])
 
 
+@jax.jit
 def projected_cap_pdf(
     direction: Float[ArrayLike, "... 3"],
     normal: Float[ArrayLike, "... 3"],
@@ -397,6 +405,7 @@ def projected_cap_pdf(
     return jnp.where(ok, pdf, 0.0)
 
 
+@jax.jit
 def projected_cap_density_bound(normal, to_center, radius) -> Float[Array, "..."]:
     """Upper bound (supplement Eq. 4, attained) on max/min of ``pdf_proj`` over the cap:
     ``(c_x − r_x)/t_x · √((r_z − c_z)/r_z)`` in the CLIP_BELOW case, 1 in FULL and CLIP_ABOVE
