@@ -528,3 +528,17 @@ def test_shipped_configs_load_and_build(path):
     if cfg.fit is not None:
         for p in cfg.fit.params:
             assert get_param(cfg, p).shape == cfg.fit.target_values[0].shape
+
+
+def test_build_scene_under_jit_reads_files_once_and_caches_no_tracers():
+    from jshadow.config import clear_file_cache
+
+    occ = {"type": "mesh", "shape": "icosphere", "subdivisions": 0, "center": [0.0, 1.0, 0.0], "radius": 0.5}
+    cfg = config_from_dict(base_dict(occluder=[occ]))
+    clear_file_cache()  # the mesh is first built inside the trace below
+    verts = eqx.filter_jit(lambda c: build_scene(c).occluders[0].vertices(0.0))(cfg)
+    eager = build_scene(cfg).occluders[0]  # from the cache filled during tracing: concrete arrays
+    assert not isinstance(eager.unit_vertices, jax.core.Tracer)
+    np.testing.assert_allclose(verts, eager.vertices(0.0), rtol=1e-6)
+    assert verts.shape == (12, 3)
+    np.testing.assert_allclose(np.linalg.norm(np.asarray(verts) - [0.0, 1.0, 0.0], axis=1), 0.5, rtol=1e-6)
