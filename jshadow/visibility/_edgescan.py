@@ -25,17 +25,17 @@ on a projected edge). Facing is one sign per (face, view), so every face is coun
 
 Stages (each a separate ``jax.jit``; on XLA:CPU one fused jit recomputes gathers and is slower):
 
-1. project: bounding sphere, shell points, the (vertex, view) image coordinates and start columns,
-   and the (face, view) facing bits;
+1. views and project: bounding sphere, shell points, face planes; the (vertex, view) image
+   coordinates and start columns, and the (face, view) facing bits;
 2. compact: the (edge, view) candidates (silhouette and crossing at least one column), packed 32
-   per word; per view, slot s finds the word holding the candidate of rank s (prefix of popcounts,
-   a small scatter and a running maximum) and the bit inside it (select-nth-set-bit), so the
-   ``S`` slots per view are filled without a scatter over all (edge, view) pairs;
+   per word; slot s finds the word holding the candidate of rank s (prefix of popcounts, a small
+   scatter and a running maximum) and the bit inside it (select-nth-set-bit), so the ``S`` slots
+   (one list for all views) are filled without a scatter over all (edge, view) pairs;
 3. emit: per slot, up to ``K`` column crossings, each one scatter-add into the difference image;
 4. project onto SH: row prefix sum by matmul, ``count ≠ 0``, ``coeffs = √(4π)·e0 − occ @ (w·Y)``
    with exact per-pixel solid angles ``w``.
 
-``S`` (slots per view), ``S2`` (edges spanning more than one column, all views) and ``K``
+``S`` ((edge, view) slots, all views), ``S2`` (those spanning more than one column) and ``K``
 (columns per edge) are static. When a pose needs more, the
 ``overflow`` flag is set; :func:`bsv_mesh_edgescan` then recomputes with larger slots (concrete
 input) or raises at run time (traced input): the result is never silently wrong.
@@ -200,40 +200,51 @@ def edgescan_cone_directions(
 # --------------------------------------------------------------------------------------------
 
 
-@partial(jax.jit, static_argnames=("grid", "directions", "shell"))
-def _stage_project(vertices, faces, *, grid, directions, shell):
-    ny, nx = directions
-    tan_a = 1.0 / math.sqrt(shell * shell - 1.0)
+@partial(jax.jit, static_argnames=("grid", "shell"))
+def _stage_views(vertices, faces, *, grid, shell):
+    """Bounding sphere, shell points and frames, face planes; coordinates as separate 1-D arrays."""
     dtype = vertices.dtype
     center, radius = bounding_sphere(vertices)
     theta, phi = bsv_grid_angles(*grid, dtype)
     u, frames = bsv_frames(theta[:, None], phi[None, :])
     points = (center + (shell * radius) * u).reshape(-1, 3)  # p (G, 3)
     frames = frames.reshape(-1, 3, 3)  # world = frame @ local
-    rel = [vertices[:, None, m] - points[None, :, m] for m in range(3)]  # x − p: (V, G) each
-
-    def local(k):  # q_k = frame[:, :, k] · (x − p), as explicit multiply-adds
-        fk = frames[None, :, :, k]
-        return rel[0] * fk[..., 0] + rel[1] * fk[..., 1] + rel[2] * fk[..., 2]
-
-    qx, qy, qz = local(0), local(1), local(2)  # qz ≥ R − r > 0 for every vertex
-    px, py = qx / qz, qy / qz  # gnomonic image coordinates (V, G)
-    dx = 2.0 * tan_a / nx
-    col = jnp.clip(jnp.ceil((px + tan_a) / dx - 0.5), 0, nx).astype(jnp.int32)  # first column x_j ≥ x
-
     tri = vertices[faces]  # (F, 3, 3)
     nrm = jnp.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # (F, 3), outward for CCW faces
-    side = (
-        nrm[:, None, 0] * (tri[:, None, 0, 0] - points[None, :, 0])
-        + nrm[:, None, 1] * (tri[:, None, 0, 1] - points[None, :, 1])
-        + nrm[:, None, 2] * (tri[:, None, 0, 2] - points[None, :, 2])
+    offset = jnp.sum(nrm * tri[:, 0], axis=-1)  # the face plane is n·x = offset
+    # contiguous 1-D components: XLA:CPU vectorises the dense (vertex, view) pass far better than
+    # with strided reads of (…, 3) arrays
+    comps = (
+        [vertices[:, m] for m in range(3)],
+        [points[:, m] for m in range(3)],
+        [[frames[:, m, k] for k in range(3)] for m in range(3)],
+        [nrm[:, m] for m in range(3)],
     )
-    front = side < 0  # (F, G): the face turns its front toward p
-    return center, radius, px, py, col, front
+    return center, radius, comps, offset
+
+
+@partial(jax.jit, static_argnames=("directions", "shell"))
+def _stage_project(comps, offset, *, directions, shell):
+    """Image coordinates and start columns per (vertex, view) (V, G); facing per (face, view) (F, G)."""
+    ny, nx = directions
+    tan_a = 1.0 / math.sqrt(shell * shell - 1.0)
+    vs, ps, fs, ns = comps
+    rel = [vs[m][:, None] - ps[m][None, :] for m in range(3)]  # x − p
+    qx, qy, qz = (
+        rel[0] * fs[0][k] + rel[1] * fs[1][k] + rel[2] * fs[2][k] for k in range(3)
+    )  # frameᵀ(x − p)
+    inv = 1.0 / qz  # qz ≥ R − r > 0 for every vertex
+    px, py = qx * inv, qy * inv  # gnomonic image coordinates
+    dx = 2.0 * tan_a / nx
+    col_dtype = jnp.uint8 if nx < 255 else jnp.int32  # less memory traffic in the (edge, view) pass
+    col = jnp.clip(jnp.ceil((px + tan_a) / dx - 0.5), 0, nx).astype(col_dtype)  # first column x_j ≥ x
+    side = ns[0][:, None] * ps[0] + ns[1][:, None] * ps[1] + ns[2][:, None] * ps[2]  # n·p (F, G)
+    front = side > offset[:, None]  # the face turns its front toward p
+    return px, py, col, front
 
 
 # --------------------------------------------------------------------------------------------
-# Stage 2: compaction of the (edge, view) candidates into S slots per view
+# Stage 2: compaction of the (edge, view) candidates into S slots (all views together)
 # --------------------------------------------------------------------------------------------
 
 
@@ -251,43 +262,52 @@ def _select_bit(x, nth):
 
 
 def _pack(mask):
-    """Bool (R, 32·W) -> uint32 words (R, W), bit k of word w = ``mask[:, 32w + k]``."""
-    r, length = mask.shape
-    bits = mask.reshape(r, length // _WORD, _WORD).astype(jnp.uint32)
+    """Bool (32·W,) -> uint32 words (W,), bit k of word w = ``mask[32w + k]``."""
+    bits = mask.reshape(-1, _WORD).astype(jnp.uint32)
     shifts = jnp.arange(_WORD, dtype=jnp.uint32)
     return jnp.sum(bits << shifts, axis=-1, dtype=jnp.uint32)  # distinct bits: the sum is an OR
 
 
 def _compact(words, slots):
-    """Positions of the set bits of each row of ``words`` (R, W), in order, in ``slots`` slots.
+    """Positions of the set bits of ``words`` (W,), in order, in ``slots`` slots.
 
-    Returns ``pos`` (R, slots) int32 (bit position ``32w + k``; −1 past the row's count) and the
-    count of set bits per row (R,). Slot s finds the word holding the set bit of rank s (exclusive
-    prefix of popcounts, a scatter of word ids at their first rank and a running maximum) and the
-    bit inside it (select-nth-set-bit): no scatter over all bits.
+    Returns ``pos`` (slots,) int32 (bit position ``32w + k``; −1 past the count) and the count of
+    set bits (). Slot s finds the word holding the set bit of rank s and the bit inside it
+    (select-nth-set-bit). Only prefix sums, small scatters and gathers are used: no scatter over
+    all bits, no sort, and no running maximum (slow on XLA:CPU).
     """
-    r, n_words = words.shape
+    n_words = words.shape[0]
     counts = lax.population_count(words).astype(jnp.int32)
-    before = jnp.cumsum(counts, axis=1) - counts  # set bits in earlier words
-    total = before[:, -1] + counts[:, -1]
-    row = jnp.arange(r, dtype=jnp.int32)[:, None]
-    wid = jnp.broadcast_to(jnp.arange(n_words, dtype=jnp.int32)[None, :], (r, n_words))
-    dest = jnp.where((counts > 0) & (before < slots), row * slots + before, r * slots)  # else dropped
-    first = jnp.full((r * slots,), -1, jnp.int32).at[dest.reshape(-1)].set(wid.reshape(-1), mode="drop")
-    word = jnp.maximum(lax.cummax(first.reshape(r, slots), axis=1), 0)  # (R, slots)
-    rank = jnp.arange(slots, dtype=jnp.int32)[None, :]
-    nth = rank - jnp.take_along_axis(before, word, axis=1)
-    bit = _select_bit(jnp.take_along_axis(words, word, axis=1), nth)
-    return jnp.where(rank < total[:, None], word * _WORD + bit, -1), total
+    before = jnp.cumsum(counts) - counts  # set bits in earlier words
+    total = before[-1] + counts[-1]
+    full = counts > 0
+    ordinal = jnp.cumsum(full.astype(jnp.int32)) - 1  # among the non-empty words
+    wid = jnp.arange(n_words, dtype=jnp.int32)
+    nonempty = jnp.zeros((n_words,), jnp.int32).at[jnp.where(full, ordinal, n_words)].set(wid, mode="drop")
+    starts = jnp.zeros((slots,), jnp.int32).at[jnp.where(full, before, slots)].add(1, mode="drop")
+    word = nonempty[jnp.maximum(jnp.cumsum(starts) - 1, 0)]  # the word holding rank s: (slots,)
+    rank = jnp.arange(slots, dtype=jnp.int32)
+    bit = _select_bit(words[word], rank - before[word])
+    return jnp.where(rank < total, word * _WORD + bit, -1), total
+
+
+@jax.jit
+def _stage_candidates(front, col, a, b, t1, t2):
+    # row gathers (E_pad, G); kept apart from the packing below, which XLA:CPU would otherwise fuse
+    # with these gathers and recompute them per bit (measured 10x slower)
+    return (front[t1] != front[t2]) & (col[a] != col[b])
 
 
 @partial(jax.jit, static_argnames=("slots",))
-def _stage_compact(front, col, a, b, t1, t2, *, slots):
-    e_pad = a.shape[0]
-    cand = (front[t1] != front[t2]) & (col[a] != col[b])  # row gathers: (E_pad, G)
-    pos, total = _compact(_pack(cand.T), slots)  # per view: (G, S)
-    sentinel = e_pad - 1  # a padding edge: never contributes
-    return jnp.where(pos >= 0, pos, sentinel), jnp.max(total)
+def _stage_slots(cand, *, slots):
+    e_pad, g = cand.shape
+    bits = cand.reshape(e_pad // _WORD, _WORD, g).astype(jnp.uint32)
+    shifts = jnp.arange(_WORD, dtype=jnp.uint32)
+    words = jnp.sum(bits << shifts[None, :, None], axis=1, dtype=jnp.uint32)  # (W, G): distinct bits, an OR
+    # one list over all views: bit g·E_pad + e is the candidate (edge e, view g)
+    pos, total = _compact(words.T.reshape(-1), slots)
+    sentinel = e_pad - 1  # view 0, a padding edge: never contributes
+    return jnp.where(pos >= 0, pos, sentinel), total
 
 
 # --------------------------------------------------------------------------------------------
@@ -296,19 +316,19 @@ def _stage_compact(front, col, a, b, t1, t2, *, slots):
 
 
 @partial(jax.jit, static_argnames=("directions", "shell", "long_slots", "span"))
-def _stage_emit(slot_edge, px, py, col, front, a, b, t1, *, directions, shell, long_slots, span):
+def _stage_emit(slot, most, px, py, col, front, a, b, t1, *, directions, shell, long_slots, span):
     ny, nx = directions
     tan_a = 1.0 / math.sqrt(shell * shell - 1.0)
     dx, dy = 2.0 * tan_a / nx, 2.0 * tan_a / ny
     dtype = px.dtype
-    g, slots = slot_edge.shape
-    view = jnp.arange(g, dtype=jnp.int32)[:, None]
-    va, vb = a[slot_edge], b[slot_edge]  # (G, S)
+    e_pad, g = a.shape[0], front.shape[1]
+    view, edge = slot // e_pad, slot % e_pad  # (S,)
+    va, vb = a[edge], b[edge]
     fa, fb = va * g + view, vb * g + view  # flat (vertex, view) indices
     pxf, pyf, colf = px.reshape(-1), py.reshape(-1), col.reshape(-1)
-    xa, ya, ca = pxf[fa], pyf[fa], colf[fa]
-    xb, yb, cb = pxf[fb], pyf[fb], colf[fb]
-    f1 = front.reshape(-1)[t1[slot_edge] * g + view]
+    xa, ya, ca = pxf[fa], pyf[fa], colf[fa].astype(jnp.int32)
+    xb, yb, cb = pxf[fb], pyf[fb], colf[fb].astype(jnp.int32)
+    f1 = front.reshape(-1)[t1[edge] * g + view]
     # silhouette weight front(t1) − front(t2) = ±1 (slots hold silhouette edges or the inert pad),
     # times the direction of the edge along x
     sgn = jnp.where(f1, 1.0, -1.0).astype(dtype) * jnp.sign(cb - ca).astype(dtype)
@@ -316,7 +336,7 @@ def _stage_emit(slot_edge, px, py, col, front, a, b, t1, *, directions, shell, l
     crosses = hi > lo
     run = jnp.where(crosses, xb - xa, 1.0)  # double where: no division by zero for idle slots
     slope = jnp.where(crosses, (yb - ya) / run, 0.0)
-    base = jnp.broadcast_to(view * ((ny + 1) * nx), (g, slots))
+    base = view * ((ny + 1) * nx)
     size = g * (ny + 1) * nx
 
     def crossing(k, lo, hi, xa, ya, slope, base):
@@ -328,18 +348,19 @@ def _stage_emit(slot_edge, px, py, col, front, a, b, t1, *, directions, shell, l
 
     # every slot emits its first crossing; the few edges spanning more columns are gathered into
     # one global list of ``long_slots`` entries that emit the crossings 1 … span − 1
-    idx = [crossing(0, lo, hi, xa, ya, slope, base).reshape(-1)]
-    val = [sgn.reshape(-1)]
-    params = [x.reshape(-1) for x in (lo, hi, xa, ya, slope, base, sgn)]
-    pos, n_long = _compact(_pack((hi - lo > 1).reshape(1, -1)), long_slots)
-    pos = pos[0]
+    idx = [crossing(0, lo, hi, xa, ya, slope, base)]
+    val = [sgn]
+    params = (lo, hi, xa, ya, slope, base, sgn)
+    pos, n_long = _compact(_pack(hi - lo > 1), long_slots)
     lo2, hi2, xa2, ya2, slope2, base2, sgn2 = [x[jnp.maximum(pos, 0)] for x in params]
     hi2 = jnp.where(pos >= 0, hi2, lo2)
     for k in range(1, span):
         idx.append(crossing(k, lo2, hi2, xa2, ya2, slope2, base2))
         val.append(sgn2)
     diff = jnp.zeros((size,), dtype).at[jnp.concatenate(idx)].add(jnp.concatenate(val), mode="drop")
-    return diff.reshape(g, ny + 1, nx), n_long[0], jnp.max(hi - lo)
+    counts = jnp.stack([most, n_long, jnp.max(hi - lo)])  # needed vs static (S, S2, K)
+    overflow = jnp.any(counts > jnp.asarray([slot.shape[0], long_slots, span], jnp.int32))
+    return diff.reshape(g, ny + 1, nx), overflow, counts
 
 
 # --------------------------------------------------------------------------------------------
@@ -393,10 +414,13 @@ def _round_up(x, m):
 
 def _run(vertices, faces, table, grid, directions, shell, slots):
     s, s2, k = slots
-    _, _, px, py, col, front = _stage_project(vertices, faces, grid=grid, directions=directions, shell=shell)
-    slot_edge, most = _stage_compact(front, col, table.a, table.b, table.t1, table.t2, slots=s)
-    diff, n_long, longest = _stage_emit(
-        slot_edge,
+    center, radius, comps, offset = _stage_views(vertices, faces, grid=grid, shell=shell)
+    px, py, col, front = _stage_project(comps, offset, directions=directions, shell=shell)
+    cand = _stage_candidates(front, col, table.a, table.b, table.t1, table.t2)
+    slot, most = _stage_slots(cand, slots=s)
+    diff, overflow, counts = _stage_emit(
+        slot,
+        most,
         px,
         py,
         col,
@@ -409,7 +433,7 @@ def _run(vertices, faces, table, grid, directions, shell, slots):
         long_slots=s2,
         span=k,
     )
-    return diff, most, n_long, longest
+    return diff, overflow, counts, center, radius
 
 
 def edgescan_slots(
@@ -424,7 +448,7 @@ def edgescan_slots(
 ) -> tuple[int, int, int]:
     """Static slot sizes ``(S, S2, K)`` measured on a pose (e.g. the rest pose), times ``margin``.
 
-    ``S``: silhouette edges crossing at least one pixel column, per view (maximum over views),
+    ``S``: (silhouette edge, view) pairs crossing at least one pixel column, over all views,
     rounded up to a multiple of 32. ``S2``: (edge, view) pairs crossing more than one column, over
     all views. ``K``: columns crossed by one edge (maximum), at most the image width. Needs concrete
     vertices.
@@ -435,18 +459,20 @@ def edgescan_slots(
     if not (isinstance(margin, int | float) and margin >= 1.0):
         raise ValueError(f"margin must be a number >= 1, got {margin!r}")
     vertices, faces, table = _prepare(vertices, faces, edge_table)
-    _, _, _, _, col, front = _stage_project(vertices, faces, grid=grid, directions=directions, shell=shell)
+    _, _, comps, offset = _stage_views(vertices, faces, grid=grid, shell=shell)
+    _, _, col, front = _stage_project(comps, offset, directions=directions, shell=shell)
     col, front = np.asarray(col), np.asarray(front)
     a, b, t1, t2 = (np.asarray(x) for x in (table.a, table.b, table.t1, table.t2))
+    col = col.astype(np.int64)
     span = np.abs(col[a] - col[b]) * (front[t1] != front[t2])  # (E_pad, G)
     e_pad = int(a.shape[0])
-    s = min(_round_up(max(1, math.ceil(int(np.max(np.sum(span > 0, axis=0))) * margin)), _WORD), e_pad)
+    s = min(_round_up(max(1, math.ceil(int(np.sum(span > 0)) * margin)), _WORD), e_pad * span.shape[1])
     s2 = max(1, math.ceil(int(np.sum(span > 1)) * margin))
     k = min(max(1, math.ceil(int(np.max(span)) * margin)), directions[1])
     return s, s2, k
 
 
-def _check_slots(slots, e_pad, width):
+def _check_slots(slots, cap, width):
     if not (
         isinstance(slots, tuple | list)
         and len(slots) == 3
@@ -454,7 +480,7 @@ def _check_slots(slots, e_pad, width):
     ):
         raise ValueError(f"slots must be three positive ints (S, S2, K) (see edgescan_slots), got {slots!r}")
     s, s2, k = (int(x) for x in slots)
-    return min(_round_up(s, _WORD), e_pad), s2, min(k, width)
+    return min(_round_up(s, _WORD), cap), s2, min(k, width)
 
 
 def _resolve(vertices, faces, grid, directions, shell, edge_table, slots):
@@ -468,24 +494,24 @@ def _resolve(vertices, faces, grid, directions, shell, edge_table, slots):
                 "slots=(S, S2, K) must be given when the vertices are traced: see edgescan_slots"
             )
         slots = edgescan_slots(vertices, faces, grid, directions, shell, edge_table=table)
-    slots = _check_slots(slots, int(table.a.shape[0]), directions[1])
+    slots = _check_slots(slots, int(table.a.shape[0]) * grid[0] * grid[1], directions[1])
     return vertices, faces, table, grid, directions, shell, slots
 
 
 def _compute(vertices, faces, table, grid, directions, shell, slots):
     """Difference images, retrying with larger slots on overflow (concrete) or flagging it (traced)."""
-    e_pad, width = int(table.a.shape[0]), directions[1]
+    cap, width = int(table.a.shape[0]) * grid[0] * grid[1], directions[1]
     while True:
         s, s2, k = slots
-        diff, most, n_long, longest = _run(vertices, faces, table, grid, directions, shell, slots)
-        overflow = (most > s) | (n_long > s2) | (longest > k)
+        diff, overflow, counts, center, radius = _run(vertices, faces, table, grid, directions, shell, slots)
         if isinstance(overflow, jax.core.Tracer) or not bool(overflow):
-            return diff, overflow
+            return diff, overflow, center, radius
+        most, n_long, longest = (int(x) for x in np.asarray(counts))
         # the counts are exact for the slotted edges, so one retry suffices unless S itself overflowed
         # (then the long-edge count is a lower bound and a second retry may follow)
-        grow = [max(x, math.ceil(1.25 * int(y))) for x, y in ((s, most), (s2, n_long), (k, longest))]
+        grow = [max(x, math.ceil(1.25 * y)) for x, y in ((s, most), (s2, n_long), (k, longest))]
         bigger = tuple(grow)
-        slots = _check_slots(bigger, e_pad, width)
+        slots = _check_slots(bigger, cap, width)
 
 
 def edgescan_occlusion(
@@ -509,7 +535,7 @@ def edgescan_occlusion(
     vertices, faces, table, grid, directions, shell, slots = _resolve(
         vertices, faces, grid, directions, shell, edge_table, slots
     )
-    diff, overflow = _compute(vertices, faces, table, grid, directions, shell, slots)
+    diff, overflow, _, _ = _compute(vertices, faces, table, grid, directions, shell, slots)
     return _stage_occlusion(diff).reshape(*grid, *directions), jnp.asarray(overflow)
 
 
@@ -552,15 +578,21 @@ def bsv_mesh_edgescan(
     vertices, faces, table, grid, directions, shell, slots = _resolve(
         vertices, faces, grid, directions, shell, edge_table, slots
     )
-    diff, overflow = _compute(vertices, faces, table, grid, directions, shell, slots)
+    diff, overflow, center, radius = _compute(vertices, faces, table, grid, directions, shell, slots)
     if isinstance(overflow, jax.core.Tracer):
         diff = eqx.error_if(diff, overflow, "edge-scan slots overflowed: pass larger slots=(S, S2, K)")
     basis_w = _basis_weights(directions, shell, int(n), vertices.dtype)
     coeffs = _stage_sh(diff, basis_w, n=int(n)).reshape(*grid, n * n)
-    center, radius = bounding_sphere(vertices)
     return BSV(coeffs, center, radius, shell * radius)
 
 
+@lru_cache(maxsize=32)
+def _np_basis_weights(directions, shell, n, dtype_name):
+    with jax.ensure_compile_time_eval():
+        d, w = edgescan_cone_directions(directions, shell, dtype_name)
+        return np.asarray(sh_basis(d, n) * w[:, None])
+
+
 def _basis_weights(directions, shell, n, dtype):
-    d, w = edgescan_cone_directions(directions, shell, dtype)
-    return sh_basis(d, n) * w[:, None]
+    """``w_k · Y(ω_k)`` (K, n²) of the pixel-centre directions, cached per configuration."""
+    return jnp.asarray(_np_basis_weights(directions, shell, n, jnp.dtype(dtype).name))
