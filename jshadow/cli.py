@@ -49,6 +49,7 @@ def _load(config_path: str):
     """Load and build a scene; every problem becomes a UsageError naming the key or file."""
     from .config import ConfigError, build_scene, load_config
 
+    _enable_x64_if_requested(config_path)
     try:
         cfg = load_config(config_path)
         scene = build_scene(cfg)
@@ -57,6 +58,21 @@ def _load(config_path: str):
     except (ValueError, OSError) as err:
         raise UsageError(f"{config_path}: {err}") from None
     return cfg, scene
+
+
+def _enable_x64_if_requested(config_path: str) -> None:
+    """Turn on JAX's float64 mode before loading a config whose [method] asks for float64."""
+    import tomllib
+
+    try:
+        with open(config_path, "rb") as fh:
+            dtype = tomllib.load(fh).get("method", {}).get("dtype")
+    except (OSError, tomllib.TOMLDecodeError, AttributeError):
+        return  # load_config reports the problem properly
+    if dtype == "float64":
+        import jax
+
+        jax.config.update("jax_enable_x64", True)
 
 
 def _make_out(out: str) -> pathlib.Path:
