@@ -322,20 +322,23 @@ def _fan_kernel(o, d, vertices, faces, *, face_chunk, origin_chunk):
             # origin within rounding of the triangle's plane (distance |vol|/|N| at the scale of the
             # coordinates): the triangle is seen edge-on and never hits; so do invalid faces
             flat = jnp.abs(vol) <= tol * fd[13][None, :] * (fd[14][None, :] + o_scale)
-            sgn = jnp.where((fd[12][None, :] > 0) & ~flat, jnp.sign(vol), 0.0)
+            usable = (fd[12][None, :] > 0) & ~flat  # (g, C)
+            sgn = jnp.where(vol < 0, -1.0, 1.0).astype(dtype)
             m = [[x * sgn for x in mk] for mk in m]
             for c in range(face_chunk):
                 s_k = [
                     dx * m[k][0][:, c, None] + dy * m[k][1][:, c, None] + dz * m[k][2][:, c, None]
                     for k in range(3)
                 ]
-                h = (s_k[0] >= 0) & (s_k[1] >= 0) & (s_k[2] >= 0) & (s_k[0] + s_k[1] + s_k[2] > 0)
+                # d lies in the cone of the triangle seen from o (for a usable triangle the m_k span
+                # space, so all s_k = 0 only for d = 0; zero directions are masked below)
+                h = (s_k[0] >= 0) & (s_k[1] >= 0) & (s_k[2] >= 0) & usable[:, c, None]
                 hit = hit | h
             return hit, None
 
         hit0 = jnp.zeros(d_c.shape[:-1], bool)
         hit, _ = lax.scan(body, hit0, fdat)
-        return hit
+        return hit & ((dx != 0) | (dy != 0) | (dz != 0))
 
     out = lax.map(per_chunk, (o_p, d_p))
     return out.reshape(n_pad, *d.shape[1:-1])[:n]
@@ -365,7 +368,7 @@ def ray_fan_any_hit(
     :func:`ray_triangle_any_hit` (watertight at vertices too) for rays aimed at vertices.
 
     Args:
-        origins: (..., 3); dirs: (..., K, 3), any non-zero length.
+        origins: (..., 3); dirs: (..., K, 3), any length (a zero direction never hits).
         face_chunk: triangles per ``lax.scan`` step; origin_chunk: origins per ``lax.map`` step.
     """
     vertices, faces = _check_mesh(vertices, faces)
