@@ -14,6 +14,7 @@ import time
 
 import equinox as eqx
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from .entities import MeshOccluder, Scene, frame_time, receivers_at_time
@@ -77,7 +78,8 @@ class Renderer:
         t0 = time.perf_counter()
         bsvs = jax.block_until_ready(self._bsvs(t))
         t1 = time.perf_counter()
-        points, normals, vis, dist = jax.block_until_ready(_fields(self.scene, t, bsvs))
+        t_arr = jnp.asarray(t, self.scene.receivers.points.dtype)  # traced: one compilation for all frames
+        points, normals, vis, dist = jax.block_until_ready(_fields(self.scene, t_arr, bsvs))
         t2 = time.perf_counter()
         e, rad = jax.block_until_ready(_combine(self.scene, points, normals, vis, dist))
         t3 = time.perf_counter()

@@ -24,6 +24,7 @@ import functools
 import math
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
@@ -58,7 +59,8 @@ class RenderResult(eqx.Module):
 
 @functools.lru_cache(maxsize=16)
 def _table(n, num, d_min, d_max, model, dtype) -> MkTable:
-    return mk_table(n=n, num=num, d_min=d_min, d_max=d_max, kind="occlusion", model=model, dtype=dtype)
+    with jax.ensure_compile_time_eval():  # concrete arrays even when first called under a trace
+        return mk_table(n=n, num=num, d_min=d_min, d_max=d_max, kind="occlusion", model=model, dtype=dtype)
 
 
 def occlusion_table(scene: Scene) -> MkTable:
