@@ -31,6 +31,7 @@ derivative of the current facing configuration is returned.
 from __future__ import annotations
 
 from collections.abc import Callable
+from functools import partial
 
 import jax
 import jax.numpy as jnp
@@ -83,6 +84,16 @@ def _slot_weights(samples: SilhouetteSamples, frames, n):
     return wa, wb
 
 
+@partial(jax.jit, static_argnames=("slots", "nodes", "n"))
+def _slot_terms(vertices, faces, table, points, frames, *, slots, nodes, n):
+    """Primal-only part (jitted): slot vertex ids, m, the two SH weight arrays and the counts."""
+    vertices, points, frames = (lax.stop_gradient(v) for v in (vertices, points, frames))
+    samples = _samples_all(vertices, faces, table, points, slots, nodes)
+    wa, wb = _slot_weights(samples, frames, n)
+    return samples.a, samples.b, samples.m, wa, wb, samples.count
+
+
+@jax.jit
 def _apply_tangent(wa, wb, a, b, m, dvertices, dpoints):
     """Linear in (dvertices, dpoints): Σ_slots wa·(m·(δa − δp)) + wb·(m·(δb − δp))  -> (P, n²)."""
     da = dvertices[a] - dpoints[:, None, :]  # (P, K, 3)
@@ -151,14 +162,13 @@ def bsv_sh_tangent(
         raise ValueError(f"dvertices must have the shape of vertices {vertices.shape}, got {dvertices.shape}")
     if dpoints.shape != points.shape:
         raise ValueError(f"dpoints must have the shape of points {points.shape}, got {dpoints.shape}")
-    x = lax.stop_gradient(vertices)
-    samples = lax.stop_gradient(
-        _samples_all(x, faces, edge_table, lax.stop_gradient(points), slots, nodes_per_edge)
+    a, b, m, wa, wb, count = _slot_terms(
+        vertices, faces, edge_table, points, frames, slots=int(slots), nodes=int(nodes_per_edge), n=int(n)
     )
-    wa, wb = _slot_weights(samples, lax.stop_gradient(frames), int(n))
-    return _apply_tangent(wa, wb, samples.a, samples.b, samples.m, dvertices, dpoints), samples.count
+    return _apply_tangent(wa, wb, a, b, m, dvertices, dpoints), count
 
 
+@partial(jax.jit, static_argnames=("grid", "shell"))
 def _sample_points(vertices, grid, shell):
     center, radius = bounding_sphere(vertices)
     points, frames = bsv_sample_points(center, radius, grid, shell)
@@ -246,11 +256,8 @@ def bsv_mesh_diff(
         (x,), (dx,) = primals, tangents
         out = lax.stop_gradient(forward(x))
         (points, frames), (dpoints, _) = jax.jvp(lambda v: _sample_points(v, grid, shell), (x,), (dx,))
-        xs = lax.stop_gradient(x)
-        samples = lax.stop_gradient(_samples_all(xs, faces, table, lax.stop_gradient(points), k, nodes))
-        wa, wb = _slot_weights(samples, lax.stop_gradient(frames), n)
-        wa, wb = lax.stop_gradient(wa), lax.stop_gradient(wb)
-        dout = _apply_tangent(wa, wb, samples.a, samples.b, samples.m, dx, dpoints)
+        a, b, m, wa, wb, _ = _slot_terms(x, faces, table, points, frames, slots=k, nodes=nodes, n=n)
+        dout = _apply_tangent(wa, wb, a, b, m, dx, dpoints)
         return out, dout.reshape(out.shape).astype(out.dtype)
 
     return bsv(vertices)

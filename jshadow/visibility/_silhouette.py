@@ -181,7 +181,7 @@ def silhouette_samples(
     sil = fr0 != fr1
     count = jnp.sum(sil, dtype=jnp.int32)
     (idx,) = jnp.nonzero(sil, size=slots, fill_value=0)
-    used = jnp.arange(slots) < count
+    used = jnp.arange(slots, dtype=jnp.int32) < count
     i, j = table.edges[idx, 0], table.edges[idx, 1]
     fwd = fr0[idx]
     a_id = jnp.where(fwd, i, j)
@@ -217,7 +217,7 @@ def silhouette_samples(
     n_faces = faces.shape[0]
     dots = (omega.reshape(-1, 3) @ cones).reshape(slots, nodes, 3, n_faces)
     inside = jnp.all(dots >= 0, axis=2) & (jnp.sum(dots, axis=2) > 0) & valid
-    fid = jnp.arange(n_faces)
+    fid = jnp.arange(n_faces, dtype=jnp.int32)
     own = (fid == f0[idx][:, None]) | (fid == f1[idx][:, None])  # (K, F)
     hit = jnp.any(inside & ~own[:, None, :], axis=-1)  # (K, n)
     chi = (~hit & ok[:, None]).astype(dtype)
