@@ -268,6 +268,11 @@ def _pack(mask):
     return jnp.sum(bits << shifts, axis=-1, dtype=jnp.uint32)  # distinct bits: the sum is an OR
 
 
+def _cumsum(x):
+    """Inclusive prefix sum of a 1-D array (a parallel scan: 2-4x faster than ``jnp.cumsum`` on XLA:CPU)."""
+    return lax.associative_scan(jnp.add, x)
+
+
 def _compact(words, slots):
     """Positions of the set bits of ``words`` (W,), in order, in ``slots`` slots.
 
@@ -278,14 +283,14 @@ def _compact(words, slots):
     """
     n_words = words.shape[0]
     counts = lax.population_count(words).astype(jnp.int32)
-    before = jnp.cumsum(counts) - counts  # set bits in earlier words
+    before = _cumsum(counts) - counts  # set bits in earlier words
     total = before[-1] + counts[-1]
     full = counts > 0
-    ordinal = jnp.cumsum(full.astype(jnp.int32)) - 1  # among the non-empty words
+    ordinal = _cumsum(full.astype(jnp.int32)) - 1  # among the non-empty words
     wid = jnp.arange(n_words, dtype=jnp.int32)
     nonempty = jnp.zeros((n_words,), jnp.int32).at[jnp.where(full, ordinal, n_words)].set(wid, mode="drop")
     starts = jnp.zeros((slots,), jnp.int32).at[jnp.where(full, before, slots)].add(1, mode="drop")
-    word = nonempty[jnp.maximum(jnp.cumsum(starts) - 1, 0)]  # the word holding rank s: (slots,)
+    word = nonempty[jnp.maximum(_cumsum(starts) - 1, 0)]  # the word holding rank s: (slots,)
     rank = jnp.arange(slots, dtype=jnp.int32)
     bit = _select_bit(words[word], rank - before[word])
     return jnp.where(rank < total, word * _WORD + bit, -1), total
@@ -315,11 +320,10 @@ def _stage_slots(cand, *, slots):
 # --------------------------------------------------------------------------------------------
 
 
-@partial(jax.jit, static_argnames=("directions", "shell", "long_slots", "span"))
-def _stage_emit(slot, most, px, py, col, front, a, b, t1, *, directions, shell, long_slots, span):
+@partial(jax.jit, static_argnames=("directions",))
+def _stage_gather(slot, px, py, col, front, a, b, t1, *, directions):
+    """Per slot: column range, start point, slope, image offset and weight of its (edge, view)."""
     ny, nx = directions
-    tan_a = 1.0 / math.sqrt(shell * shell - 1.0)
-    dx, dy = 2.0 * tan_a / nx, 2.0 * tan_a / ny
     dtype = px.dtype
     e_pad, g = a.shape[0], front.shape[1]
     view, edge = slot // e_pad, slot % e_pad  # (S,)
@@ -337,7 +341,19 @@ def _stage_emit(slot, most, px, py, col, front, a, b, t1, *, directions, shell, 
     run = jnp.where(crosses, xb - xa, 1.0)  # double where: no division by zero for idle slots
     slope = jnp.where(crosses, (yb - ya) / run, 0.0)
     base = view * ((ny + 1) * nx)
-    size = g * (ny + 1) * nx
+    return lo, hi, xa, ya, slope, base, sgn
+
+
+@partial(jax.jit, static_argnames=("views", "directions", "shell", "long_slots", "span"))
+def _stage_emit(params, most, *, views, directions, shell, long_slots, span):
+    """Scatter-add of every column crossing into the difference image (G, N_y + 1, N_x)."""
+    ny, nx = directions
+    tan_a = 1.0 / math.sqrt(shell * shell - 1.0)
+    dx, dy = 2.0 * tan_a / nx, 2.0 * tan_a / ny
+    lo, hi, xa, ya, slope, base, sgn = params
+    dtype = xa.dtype
+    n_slots = lo.shape[0]
+    size = views * (ny + 1) * nx
 
     def crossing(k, lo, hi, xa, ya, slope, base):
         j = lo + k
@@ -350,7 +366,6 @@ def _stage_emit(slot, most, px, py, col, front, a, b, t1, *, directions, shell, 
     # one global list of ``long_slots`` entries that emit the crossings 1 … span − 1
     idx = [crossing(0, lo, hi, xa, ya, slope, base)]
     val = [sgn]
-    params = (lo, hi, xa, ya, slope, base, sgn)
     pos, n_long = _compact(_pack(hi - lo > 1), long_slots)
     lo2, hi2, xa2, ya2, slope2, base2, sgn2 = [x[jnp.maximum(pos, 0)] for x in params]
     hi2 = jnp.where(pos >= 0, hi2, lo2)
@@ -359,8 +374,8 @@ def _stage_emit(slot, most, px, py, col, front, a, b, t1, *, directions, shell, 
         val.append(sgn2)
     diff = jnp.zeros((size,), dtype).at[jnp.concatenate(idx)].add(jnp.concatenate(val), mode="drop")
     counts = jnp.stack([most, n_long, jnp.max(hi - lo)])  # needed vs static (S, S2, K)
-    overflow = jnp.any(counts > jnp.asarray([slot.shape[0], long_slots, span], jnp.int32))
-    return diff.reshape(g, ny + 1, nx), overflow, counts
+    overflow = jnp.any(counts > jnp.asarray([n_slots, long_slots, span], jnp.int32))
+    return diff.reshape(views, ny + 1, nx), overflow, counts
 
 
 # --------------------------------------------------------------------------------------------
@@ -418,20 +433,9 @@ def _run(vertices, faces, table, grid, directions, shell, slots):
     px, py, col, front = _stage_project(comps, offset, directions=directions, shell=shell)
     cand = _stage_candidates(front, col, table.a, table.b, table.t1, table.t2)
     slot, most = _stage_slots(cand, slots=s)
+    params = _stage_gather(slot, px, py, col, front, table.a, table.b, table.t1, directions=directions)
     diff, overflow, counts = _stage_emit(
-        slot,
-        most,
-        px,
-        py,
-        col,
-        front,
-        table.a,
-        table.b,
-        table.t1,
-        directions=directions,
-        shell=shell,
-        long_slots=s2,
-        span=k,
+        params, most, views=grid[0] * grid[1], directions=directions, shell=shell, long_slots=s2, span=k
     )
     return diff, overflow, counts, center, radius
 
