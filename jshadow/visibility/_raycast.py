@@ -118,9 +118,13 @@ def _any_hit_kernel(o, d, tmin, tmax, mask, vertices, faces, *, ray_chunk, face_
     n = o.shape[0]
     dtype = o.dtype
     faces_p, ids, valid = _pad_faces(vertices, faces, face_chunk)
+    # rotate each face (orientation kept) so that corner 0 holds its lowest vertex index: then edge
+    # 0 -> 1 is already canonical, edge 2 -> 0 is always reversed, and only edge 1 -> 2 needs a test
+    first = jnp.argmin(faces_p, axis=1)
+    faces_p = jnp.take_along_axis(faces_p, (first[:, None] + jnp.arange(3)) % 3, axis=1)
     n_chunks = faces_p.shape[0] // face_chunk
     tri = vertices[faces_p].reshape(n_chunks, face_chunk, 3, 3)  # (chunks, C, corner, xyz)
-    swap = _edge_sorted(faces_p).reshape(n_chunks, face_chunk, 3)  # edge k: corner k -> k+1
+    swap = (faces_p[:, 1] > faces_p[:, 2]).reshape(n_chunks, face_chunk)  # edge 1 -> 2 runs high -> low
     fid = ids.reshape(n_chunks, face_chunk)
     valid = valid.reshape(n_chunks, face_chunk)
 
@@ -162,14 +166,16 @@ def _any_hit_kernel(o, d, tmin, tmax, mask, vertices, faces, *, ray_chunk, face_
                     px.append(proj(p, basis[0]))
                     py.append(proj(p, basis[1]))
                     pz.append(proj(p, basis[2]))
-                edge = []
-                for k in range(3):
-                    k1 = (k + 1) % 3
-                    s = swap_s[c, k]
-                    ax, ay = jnp.where(s, px[k1], px[k]), jnp.where(s, py[k1], py[k])
-                    bx, by = jnp.where(s, px[k], px[k1]), jnp.where(s, py[k], py[k1])
-                    e = ax * by - ay * bx  # canonical orientation: low -> high vertex index
-                    edge.append(jnp.where(s, -e, e))
+                # 2D edge functions, each evaluated in canonical orientation (low -> high index)
+                s = swap_s[c]
+                ax, ay = jnp.where(s, px[2], px[1]), jnp.where(s, py[2], py[1])
+                bx, by = jnp.where(s, px[1], px[2]), jnp.where(s, py[1], py[2])
+                e12 = ax * by - ay * bx
+                edge = [
+                    px[0] * py[1] - py[0] * px[1],  # corner 0 -> 1
+                    jnp.where(s, -e12, e12),  # corner 1 -> 2
+                    -(px[0] * py[2] - py[0] * px[2]),  # corner 2 -> 0
+                ]
                 det = edge[0] + edge[1] + edge[2]
                 # edge k is opposite corner k+2: barycentric weight of that corner
                 tz = edge[0] * pz[2] + edge[1] * pz[0] + edge[2] * pz[1]
@@ -179,8 +185,8 @@ def _any_hit_kernel(o, d, tmin, tmax, mask, vertices, faces, *, ray_chunk, face_
                     (edge[0] <= 0) & (edge[1] <= 0) & (edge[2] <= 0)
                 )
                 h = inside & valid_s[c] & (adet > 0) & (tz * sgn > lo_c * adet) & (tz * sgn < hi_c * adet)
-                if has_mask:
-                    h = h & ~jnp.any(mask_c == fid_s[c], axis=-1)
+                for j in range(mask_c.shape[-1] if has_mask else 0):
+                    h = h & (mask_c[:, j] != fid_s[c])
                 hit = hit | h
             return hit, None
 
