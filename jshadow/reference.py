@@ -1,0 +1,292 @@
+"""Monte Carlo ground truth: irradiance at every receiver with exact visibility.
+
+``E(x) = ∫ L(ω) V(x, ω) max(0, n·ω) dω`` is estimated independently of the shadow-field code (this
+module never imports :mod:`jshadow.scaling`, :mod:`jshadow.scene`, :mod:`jshadow.lights` or the SH
+package): visibility is exact any-hit ray casting (:mod:`jshadow.visibility._raycast`) against every
+occluder — spheres analytically, meshes triangle by triangle at the frame's deformation.
+
+Estimators, per receiver and per sample (one sample of each strategy):
+
+* Environment ("constant", "sky"): cosine-weighted hemisphere sampling, ``π L(ω) V(ω)``.
+  "hdr": one cosine sample and one luminance importance sample of the lat-long map, combined by
+  multiple importance sampling (power heuristic, β = 2, by default; Veach 1997).
+* Sphere lights: projected-spherical-cap sampling (Peters & Dachsbacher 2019, all three cases),
+  ``L_light V(ω) / p⊥(ω)``: zero variance where the light is unoccluded and its cap above the
+  horizon. A light ray only counts occluders nearer than the light's surface.
+
+Sphere lights are emitters only, they do **not** occlude: neither the environment nor other lights
+are shadowed by them (the shadow-field combination adds each light's shadowed contribution
+independently, Zhou et al. 2005 "Precomputed shadow fields", Sec. 5). The environment is infinitely
+far: every occluder in a ray's way blocks it.
+
+Receivers are those of :func:`jshadow.entities.receivers_at` (plane receivers, then the deformed
+mesh vertices when ``scene.self_shadow``). Self-shadow receivers lie *on* the mesh, so ray origins
+are offset along the normal by ``ε = eps(dtype, 100) · scene size`` (about 1.2e-4 of the scene's
+extent in float32, 2.2e-13 in float64), and hits closer than ε are ignored. Where the vertex normal
+disagrees with an adjacent face (sharp features), rays grazing that face may still be blocked by
+it: that is the receiver's own geometry, counted as occlusion.
+
+Randomness: receiver i uses ``fold_in(fold_in(key, i), block)`` for its samples in blocks of
+``min(spp, 64)``, so the result depends on ``key`` and ``spp`` but not on ``chunk``.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float, PRNGKeyArray
+
+from ._numerics import eps, safe_div, safe_sqrt
+from .entities import Environment, MeshOccluder, Scene, SphereOccluder, frame_time, receivers_at
+from .sampling import (
+    EnvironmentSampler,
+    environment_pdf,
+    environment_sampler,
+    sample_cosine_hemisphere,
+    sample_environment,
+    sample_projected_cap,
+)
+from .visibility._raycast import ray_sphere_any_hit, ray_triangle_any_hit
+
+__all__ = ["ReferenceResult", "reference", "reference_irradiance"]
+
+_BLOCK = 64  # samples per receiver per random-number block
+_RAYS_PER_CALL = 1 << 16  # default receiver chunk: about this many rays per compiled call
+
+
+class ReferenceResult(NamedTuple):
+    """Output of :func:`reference`; all arrays (N, 3), linear RGB, one row per receiver."""
+
+    points: Float[Array, "N 3"]
+    normals: Float[Array, "N 3"]
+    irradiance: Float[Array, "N 3"]  # E, W/m² per unit radiance scale
+    radiance: Float[Array, "N 3"]  # albedo/π · E (diffuse receivers)
+    irradiance_stderr: Float[Array, "N 3"]  # standard error of E from the sample variance
+
+
+class _Geometry(eqx.Module):
+    sphere_centers: Float[Array, "S 3"]
+    sphere_radii: Float[Array, " S"]
+    meshes: tuple  # ((vertices (V, 3), faces (F, 3)), ...) at the frame's time
+    light_centers: Float[Array, "L 3"]
+    light_radii: Float[Array, " L"]
+    light_radiance: Float[Array, "L 3"]
+    environment: Environment | None
+    env_sampler: EnvironmentSampler | None
+    offset: Float[Array, ""]  # ray-origin offset ε along the normal, and minimum hit distance
+
+
+def _occluded(geo: _Geometry, o, d, t_max):
+    """Any-hit against all occluders for rays o + t d, ε < t < t_max (shapes (..., 3), (...))."""
+    hit = jnp.zeros(d.shape[:-1], bool)
+    for s in range(geo.sphere_radii.shape[0]):
+        hit = hit | ray_sphere_any_hit(o, d, geo.sphere_centers[s], geo.sphere_radii[s], geo.offset, t_max)
+    for vertices, faces in geo.meshes:
+        hit = hit | ray_triangle_any_hit(o, d, vertices, faces, geo.offset, t_max)
+    return hit
+
+
+def _light_distance(o, d, center, radius):
+    """Distance along unit d from o to the near surface of the light (inf if missed)."""
+    oc = center - o
+    b = jnp.sum(oc * d, axis=-1)
+    disc = b * b - (jnp.sum(oc * oc, axis=-1) - radius * radius)
+    t = b - safe_sqrt(disc)
+    return jnp.where(disc >= 0, jnp.maximum(t, 0.0), jnp.inf)
+
+
+@eqx.filter_jit
+def _estimate_block(geo: _Geometry, points, normals, ridx, key, block, spp, heuristic_power):
+    """Per receiver: mean and M2 (sum of squared deviations) of the per-sample estimates of E in
+    one block of ``_BLOCK`` samples (samples beyond ``spp`` are masked), and the count."""
+    dtype = points.dtype
+    n_lights = geo.light_radii.shape[0]
+    env = geo.environment
+    use_env = env is not None
+    use_mis = geo.env_sampler is not None
+    n_u = 2 * n_lights + (2 if use_env else 0) + (2 if use_mis else 0)
+    keys = jax.vmap(lambda i: jax.random.fold_in(jax.random.fold_in(key, i), block))(ridx)
+    u = jax.vmap(lambda k: jax.random.uniform(k, (_BLOCK, max(n_u, 1)), dtype))(keys)  # (R, B, n_u)
+    p = points[:, None, :]
+    n = normals[:, None, :]
+    o = p + geo.offset * n  # (R, 1, 3)
+    value = jnp.zeros((*u.shape[:2], 3), dtype)
+    col = 0
+    if use_env:
+        cs = sample_cosine_hemisphere(u[..., col : col + 2], n)
+        col += 2
+        vis_c = ~_occluded(geo, o, cs.direction, jnp.inf)
+        lc = jnp.where(vis_c[..., None], env.radiance_at(cs.direction), 0.0)
+        if use_mis:
+            es = sample_environment(geo.env_sampler, u[..., col : col + 2])
+            col += 2
+            cos_e = jnp.maximum(jnp.sum(es.direction * n, axis=-1), 0.0)
+            vis_e = ~_occluded(geo, o, es.direction, jnp.inf) & (cos_e > 0) & es.valid
+            le = jnp.where(vis_e[..., None], env.radiance_at(es.direction), 0.0)
+            pc_c, pe_c = cs.pdf, environment_pdf(geo.env_sampler, cs.direction)
+            pc_e, pe_e = cos_e / jnp.pi, es.pdf
+            b = heuristic_power
+            w_c = safe_div(pc_c**b, pc_c**b + pe_c**b)
+            w_e = safe_div(pe_e**b, pc_e**b + pe_e**b)
+            # cosine strategy: L V cos / p_c = π L V (p_c > 0 on the sampled hemisphere)
+            value = value + (w_c * jnp.pi)[..., None] * lc
+            value = value + (w_e * safe_div(cos_e, pe_e))[..., None] * le
+        else:
+            value = value + jnp.pi * lc
+    for li in range(n_lights):
+        center, radius = geo.light_centers[li], geo.light_radii[li]
+        ls = sample_projected_cap(u[..., col : col + 2], n, center - p, radius)
+        col += 2
+        t_max = _light_distance(o, ls.direction, center, radius)
+        vis = ~_occluded(geo, o, ls.direction, t_max) & ls.valid
+        w = jnp.where(vis, safe_div(1.0, ls.pdf_proj), 0.0)  # L V max(0, n·ω) / p_ω = L V / p⊥
+        value = value + w[..., None] * geo.light_radiance[li]
+    sample_id = block * _BLOCK + jnp.arange(_BLOCK, dtype=jnp.int32)
+    live = (sample_id < spp).astype(dtype)[None, :, None]
+    count = jnp.sum(live[0, :, 0])
+    mean = jnp.sum(value * live, axis=1) / count
+    m2 = jnp.sum(((value - mean[:, None, :]) * live) ** 2, axis=1)
+    return mean, m2, count
+
+
+def _scene_size(points, scene: Scene, meshes) -> float:
+    pts = [np.asarray(points)]
+    for occ in scene.occluders:
+        if isinstance(occ, SphereOccluder):
+            c, r = np.asarray(occ.center), float(occ.radius)
+            pts += [c - r, c + r]
+    for v, _ in meshes:
+        pts.append(np.asarray(v))
+    for light in scene.lights:
+        pts.append(np.asarray(light.center)[None])
+    allp = np.concatenate([np.reshape(a, (-1, 3)) for a in pts])
+    return float(max(np.max(np.ptp(allp, axis=0)), 1.0e-30))
+
+
+def reference(
+    scene: Scene,
+    spp: int,
+    key: PRNGKeyArray,
+    frame: int = 0,
+    chunk: int | None = None,
+    progress: bool = False,
+    *,
+    heuristic: str = "power",
+) -> ReferenceResult:
+    """Monte Carlo irradiance and radiance at every receiver of ``scene`` at ``frame``.
+
+    Args:
+        scene: the scene (any occluders, sphere lights, optional environment).
+        spp: samples per receiver and per strategy (≥ 1; the standard error needs ≥ 2).
+        key: JAX PRNG key; the result is deterministic for (key, spp), whatever ``chunk``.
+        frame: animation frame; mesh occluders are deformed at ``frame_time(frame, n_frames)``.
+        chunk: receivers per compiled call (memory bound ~ chunk · 64 · rays · 3 floats); default
+            aims at about 65k rays per call.
+        progress: show a ``tqdm`` progress bar.
+        heuristic: "power" (β = 2) or "balance", for the MIS of "hdr" environments.
+
+    Returns:
+        :class:`ReferenceResult` with ``points``, ``normals``, ``irradiance``, ``radiance``
+        (albedo/π · E) and ``irradiance_stderr`` (√(sample variance / spp); 0 if spp = 1), (N, 3).
+
+    Limitations: not differentiable (binary visibility); cost is brute force, rays × triangles.
+    Sphere lights do not occlude (see the module docstring).
+    """
+    if not (isinstance(spp, int | np.integer) and spp >= 1):
+        raise ValueError(f"spp must be a positive integer, got {spp!r}")
+    if chunk is not None and not (isinstance(chunk, int | np.integer) and chunk >= 1):
+        raise ValueError(f"chunk must be a positive integer or None, got {chunk!r}")
+    if heuristic not in ("power", "balance"):
+        raise ValueError(f"heuristic must be 'power' or 'balance', got {heuristic!r}")
+    dtype = scene.dtype
+    t = frame_time(frame, scene.n_frames)
+    points, normals = receivers_at(scene, frame)
+    points, normals = jnp.asarray(points, dtype), jnp.asarray(normals, dtype)
+    spheres = [o for o in scene.occluders if isinstance(o, SphereOccluder)]
+    meshes = tuple(
+        (jnp.asarray(o.vertices(t), dtype), jnp.asarray(o.faces, jnp.int32))
+        for o in scene.occluders
+        if isinstance(o, MeshOccluder)
+    )
+    unknown = [type(o).__name__ for o in scene.occluders if not isinstance(o, SphereOccluder | MeshOccluder)]
+    if unknown:
+        raise ValueError(f"scene.occluders may hold SphereOccluder and MeshOccluder only, got {unknown}")
+    env = scene.environment
+    if env is not None:
+        env = Environment(
+            jnp.asarray(env.radiance, dtype),
+            None if env.image is None else jnp.asarray(env.image, dtype),
+            env.kind,
+        )
+    size = _scene_size(points, scene, meshes)
+
+    def stack3(xs):
+        return jnp.asarray(np.reshape([np.asarray(x) for x in xs], (-1, 3)), dtype)
+
+    geo = _Geometry(
+        sphere_centers=stack3(s.center for s in spheres),
+        sphere_radii=jnp.asarray([float(s.radius) for s in spheres], dtype).reshape(-1),
+        meshes=meshes,
+        light_centers=stack3(x.center for x in scene.lights),
+        light_radii=jnp.asarray([float(x.radius) for x in scene.lights], dtype).reshape(-1),
+        light_radiance=jnp.asarray(
+            np.reshape([np.asarray(x.radiance) for x in scene.lights], (-1, 3)), dtype
+        ),
+        environment=env,
+        env_sampler=environment_sampler(env) if env is not None and env.kind == "hdr" else None,
+        offset=jnp.asarray(eps(dtype, 100.0) * size, dtype),
+    )
+    n_recv = points.shape[0]
+    n_rays = max(len(scene.lights) + (0 if env is None else 1 + (env.kind == "hdr")), 1)
+    if chunk is None:
+        chunk = max(1, min(n_recv, _RAYS_PER_CALL // (_BLOCK * n_rays)))
+    chunk = min(chunk, max(n_recv, 1))
+    n_blocks = -(-spp // _BLOCK)
+    n_chunks = -(-n_recv // chunk)
+    power = 2.0 if heuristic == "power" else 1.0
+    mean = np.zeros((n_recv, 3))
+    m2 = np.zeros((n_recv, 3))
+    from tqdm.auto import tqdm
+
+    bar = tqdm(total=n_chunks * n_blocks, disable=not progress, desc="reference", unit="call")
+    for c in range(n_chunks):
+        lo = c * chunk
+        ridx = jnp.minimum(jnp.arange(lo, lo + chunk, dtype=jnp.int32), n_recv - 1)  # pad by repeating
+        pts, nrm = points[ridx], normals[ridx]
+        m_acc = np.zeros((chunk, 3))
+        s_acc = np.zeros((chunk, 3))
+        n_acc = 0.0
+        for b in range(n_blocks):
+            bm, bm2, bn = _estimate_block(geo, pts, nrm, ridx, key, jnp.asarray(b, jnp.int32), spp, power)
+            bm, bm2, bn = np.asarray(bm, np.float64), np.asarray(bm2, np.float64), float(bn)
+            # Chan et al.: merge (n_acc, m_acc, s_acc) with the block's (bn, bm, bm2)
+            tot = n_acc + bn
+            delta = bm - m_acc
+            m_acc = m_acc + delta * (bn / tot)
+            s_acc = s_acc + bm2 + delta**2 * (n_acc * bn / tot)
+            n_acc = tot
+            bar.update(1)
+        k = min(chunk, n_recv - lo)
+        mean[lo : lo + k] = m_acc[:k]
+        m2[lo : lo + k] = s_acc[:k]
+    bar.close()
+    var = m2 / (spp - 1) if spp > 1 else np.zeros_like(m2)
+    stderr = np.sqrt(np.maximum(var, 0.0) / spp)
+    irradiance = jnp.asarray(mean, dtype)
+    albedo = jnp.asarray(scene.receivers.albedo, dtype)
+    return ReferenceResult(
+        points=points,
+        normals=normals,
+        irradiance=irradiance,
+        radiance=albedo / jnp.pi * irradiance,
+        irradiance_stderr=jnp.asarray(stderr, dtype),
+    )
+
+
+def reference_irradiance(scene: Scene, spp: int, key: PRNGKeyArray, frame: int = 0) -> Float[Array, "N 3"]:
+    """Shortcut: the irradiance (N, 3) of :func:`reference`."""
+    return reference(scene, spp, key, frame).irradiance
