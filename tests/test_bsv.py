@@ -376,3 +376,16 @@ def test_auto_edgescan_agrees_with_brute_force(bunny):
     np.testing.assert_array_equal(
         np.asarray(auto.center), np.asarray(bsv_mesh(v, f, method="brute", n=1, grid=(1, 1)).center)
     )
+
+
+def test_mesh_bsv_vmaps_over_poses(bunny):
+    _, v, f = bunny
+    v = v.astype(np.float32)
+    poses = np.stack([v, v * np.array([1.0, 0.8, 1.2], np.float32)])
+    kw = dict(n=2, grid=(2, 3), directions=(6, 6), method="brute")
+    batched = jax.vmap(lambda x: bsv_mesh(x, f, **kw))(poses)
+    assert batched.coeffs.shape == (2, 2, 3, 4) and batched.center.shape == (2, 3)
+    for i in range(2):
+        np.testing.assert_allclose(
+            np.asarray(batched.coeffs[i]), np.asarray(bsv_mesh(poses[i], f, **kw).coeffs), atol=1e-6
+        )
