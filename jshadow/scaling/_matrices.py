@@ -31,6 +31,7 @@ import math
 from functools import lru_cache
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
@@ -237,14 +238,26 @@ def mk_table(
 
 
 def _interp_values(table: MkTable, k: Array, dtype) -> Array:
-    """Entries (..., nnz) of M_k, linear in k between table points, clamped to [k_min, k_max]."""
+    """Entries (..., nnz) of M_k, linear in k between table points, clamped to [k_min, k_max].
+
+    The interpolation weights are hat functions of k over the K table points, so the entries are
+    one (..., K) @ (K, nnz) product; on XLA:CPU this was 2–4× faster than gathering two table rows
+    per receiver (benchmarks/results/scaling.md).
+    """
     ks = table.ks.astype(dtype)
     vals = table.values.astype(dtype)
-    kc = jnp.clip(k, ks[0], ks[-1])
-    i0 = jnp.clip(jnp.searchsorted(ks, kc, side="right") - 1, 0, ks.shape[0] - 2)
-    k0, k1 = ks[i0], ks[i0 + 1]
-    w = ((kc - k0) / (k1 - k0))[..., None]
-    return vals[i0] * (1.0 - w) + vals[i0 + 1] * w
+    n_k = ks.shape[0]
+    first = np.arange(n_k) == 0
+    last = np.arange(n_k) == n_k - 1
+    left = jnp.concatenate([ks[:1], ks[:-1]])  # k_{t−1} (k_0 for t = 0)
+    right = jnp.concatenate([ks[1:], ks[-1:]])  # k_{t+1} (k_{K−1} for t = K−1)
+    den_l = jnp.where(first, 1.0, ks - left)  # double where: no 0/0 at the ends, even in gradients
+    den_r = jnp.where(last, 1.0, right - ks)
+    kc = jnp.clip(k, ks[0], ks[-1])[..., None]
+    rise = jnp.where(first, 1.0, (kc - left) / den_l)
+    fall = jnp.where(last, 1.0, (right - kc) / den_r)
+    w = jnp.clip(jnp.where(kc <= ks, rise, fall), 0.0, 1.0)  # (..., K) hat weights, summing to 1
+    return jnp.matmul(w, vals, precision=jax.lax.Precision.HIGHEST)
 
 
 def _float_dtype(*xs):
@@ -274,7 +287,8 @@ def mk_apply(
 
     Never forms the dense matrix: interpolates the table's non-zero entries at k and accumulates
     one product per entry (41 multiply-adds for n = 4), which XLA fuses into a single elementwise
-    pass. k and coeffs broadcast over leading axes; computed in coeffs' dtype (the table is cast).
+    pass (about 8× faster than the dense form for 1e5 receivers on CPU). k and coeffs broadcast
+    over leading axes; computed in coeffs' dtype (the table is cast).
     Coefficient vectors with fewer bands than the table use its leading n'² × n'² block (the same
     integrals). Differentiable in k (inside the table's range) and in coeffs.
     """
