@@ -162,6 +162,14 @@ def test_sky_projection_matches_brute_force():
     assert float(got[0, 0]) == pytest.approx(2 * math.sqrt(math.pi) / 3, abs=1e-12)
 
 
+def test_environment_sh_inside_jit(rng):
+    img = jnp.asarray(rng.uniform(0, 1, size=(6, 12, 3)), jnp.float32)
+    ones = jnp.ones(3, jnp.float32)
+    for env in [Environment(ones, img, "hdr"), Environment(ones, None, "sky")]:
+        jitted = jax.jit(lambda e: environment_sh(e, 3, rotation_y=0.3))(env)
+        np.testing.assert_allclose(jitted, environment_sh(env, 3, rotation_y=0.3), rtol=1e-5, atol=1e-6)
+
+
 def test_environment_validation():
     with pytest.raises(ValueError, match="samples_per_pixel"):
         environment_sh(Environment(jnp.ones(3), jnp.ones((2, 4, 3)), "hdr"), 4, samples_per_pixel=0)

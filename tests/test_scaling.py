@@ -426,3 +426,19 @@ def test_validation():
         mk_apply(t, 0.5, jnp.zeros(9, jnp.float32))
     with pytest.raises(ValueError, match="square"):
         mk_apply(t, 0.5, jnp.zeros(3, jnp.float32))
+
+
+def test_apply_gradient_finite_at_nodes_and_outside_range(table64):
+    with jax.enable_x64(True):
+        ks = np.asarray(table64.ks)
+        k = jnp.asarray([ks[0], ks[5], ks[-1], ks[0] / 2, ks[-1] * 2])
+        c = jnp.ones((5, 16))
+
+        @jax.jit  # the table is a pytree argument
+        def fn(table, k, c):
+            return jnp.sum(mk_apply(table, k, c) * jnp.arange(16.0))
+
+        g_k, g_c = jax.grad(fn, argnums=(1, 2))(table64, k, c)
+        assert bool(jnp.all(jnp.isfinite(g_k))) and bool(jnp.all(jnp.isfinite(g_c)))
+        np.testing.assert_array_equal(g_k[3:], [0.0, 0.0])  # clamped outside the table
+        assert float(jnp.abs(g_k[1])) > 0
