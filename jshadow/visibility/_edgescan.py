@@ -305,13 +305,10 @@ def _stage_candidates(front, col, a, b, t1, t2):
 
 @partial(jax.jit, static_argnames=("slots",))
 def _stage_slots(cand, *, slots):
+    # one list over all views, in memory order: bit e·G + g is the candidate (edge e, view g)
     e_pad, g = cand.shape
-    bits = cand.reshape(e_pad // _WORD, _WORD, g).astype(jnp.uint32)
-    shifts = jnp.arange(_WORD, dtype=jnp.uint32)
-    words = jnp.sum(bits << shifts[None, :, None], axis=1, dtype=jnp.uint32)  # (W, G): distinct bits, an OR
-    # one list over all views: bit g·E_pad + e is the candidate (edge e, view g)
-    pos, total = _compact(words.T.reshape(-1), slots)
-    sentinel = e_pad - 1  # view 0, a padding edge: never contributes
+    pos, total = _compact(_pack(cand.reshape(-1)), slots)
+    sentinel = (e_pad - 1) * g  # view 0, a padding edge: never contributes
     return jnp.where(pos >= 0, pos, sentinel), total
 
 
@@ -325,8 +322,8 @@ def _stage_gather(slot, px, py, col, front, a, b, t1, *, directions):
     """Per slot: column range, start point, slope, image offset and weight of its (edge, view)."""
     ny, nx = directions
     dtype = px.dtype
-    e_pad, g = a.shape[0], front.shape[1]
-    view, edge = slot // e_pad, slot % e_pad  # (S,)
+    g = front.shape[1]
+    edge, view = slot // g, slot % g  # (S,)
     va, vb = a[edge], b[edge]
     fa, fb = va * g + view, vb * g + view  # flat (vertex, view) indices
     pxf, pyf, colf = px.reshape(-1), py.reshape(-1), col.reshape(-1)
