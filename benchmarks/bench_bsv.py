@@ -79,19 +79,28 @@ def _brute_bsv(vertices, faces, *, directions):
     return occ, full - occ.astype(vertices.dtype) @ (sh_basis(local, N_BANDS) * w[:, None])
 
 
-def _embree_rays(vertices, directions):
-    """World origins (G·K, 3) and directions (G·K, 3) of the cone rays, float32, numpy."""
+def _np_frames():
+    """Shell directions u (G, 3) and frames (G, 3, 3) of the BSV grid, numpy (see ``_frames``)."""
+    t, p = GRID
+    theta = (np.arange(t) + 0.5) * (math.pi / t)
+    phi = np.arange(p) * (2.0 * math.pi / p)
+    th, ph = np.meshgrid(theta, phi, indexing="ij")
+    st, ct, sp, cp = np.sin(th), np.cos(th), np.sin(ph), np.cos(ph)
+    u = np.stack([st * cp, st * sp, ct], -1).reshape(-1, 3)
+    x = np.stack([ct * cp, ct * sp, -st], -1).reshape(-1, 3)
+    y = np.stack([sp, -cp, np.zeros_like(sp)], -1).reshape(-1, 3)
+    return u, np.stack([x, y, -u], axis=-1)
+
+
+def _embree_rays(vertices, directions, local):
+    """World origins (G·K, 3) and directions (G·K, 3) of the cone rays, float32, all in numpy."""
     v = np.asarray(vertices, np.float64)
     center = 0.5 * (v.min(0) + v.max(0))
     radius = np.max(np.linalg.norm(v - center, axis=1))
-    points, frames = bsv_sample_points(jnp.asarray(center), jnp.asarray(radius), GRID, SHELL)
-    points = np.asarray(points, np.float64).reshape(-1, 3)
-    frames = np.asarray(frames, np.float64).reshape(-1, 3, 3)
-    local, _ = edgescan_cone_directions(directions, SHELL, jnp.float32)
-    local = np.asarray(local, np.float64)
-    k = local.shape[0]
+    u, frames = _np_frames()
+    points = center + SHELL * radius * u
     dirs = np.einsum("gab,kb->gka", frames, local).reshape(-1, 3)
-    origins = np.repeat(points, k, axis=0)
+    origins = np.repeat(points, local.shape[0], axis=0)
     return origins.astype(np.float32), dirs.astype(np.float32)
 
 
@@ -142,16 +151,17 @@ def bench_one(name, size, runs):
     )
     occ_bf = np.asarray(_brute_bsv(v, f32, directions=directions)[0]).reshape(-1)
 
-    origins, dirs = _embree_rays(v, directions)
+    local, w = edgescan_cone_directions(directions, SHELL, jnp.float32)
+    local_np = np.asarray(local, np.float64)
+    origins, dirs = _embree_rays(v, directions, local_np)
     scene = _embree_scene(v, f)
     _, row["em_med"], row["em_best"] = _timed(lambda: _embree_occluded(scene, origins, dirs), runs)
     occ_em = _embree_occluded(scene, origins, dirs)
-    local, w = edgescan_cone_directions(directions, SHELL, jnp.float32)
     basis_w = np.asarray(sh_basis(local, N_BANDS) * w[:, None])
     v_np, f_np = np.asarray(v), np.asarray(f)
 
     def embree_full():
-        o, d = _embree_rays(v_np, directions)
+        o, d = _embree_rays(v_np, directions, local_np)
         occ = _embree_occluded(_embree_scene(v_np, f_np), o, d).reshape(-1, basis_w.shape[0])
         coeffs = -(occ.astype(np.float32) @ basis_w)
         coeffs[:, 0] += math.sqrt(4.0 * math.pi)

@@ -32,8 +32,9 @@ Stages (each a separate ``jax.jit``; on XLA:CPU one fused jit recomputes gathers
    scatter and a running maximum) and the bit inside it (select-nth-set-bit), so the ``S`` slots
    (one list for all views) are filled without a scatter over all (edge, view) pairs;
 3. emit: per slot, up to ``K`` column crossings, each one scatter-add into the difference image;
-4. project onto SH: row prefix sum by matmul, ``count ≠ 0``, ``coeffs = √(4π)·e0 − occ @ (w·Y)``
-   with exact per-pixel solid angles ``w``.
+4. project onto SH: row prefix sum by one matmul (images stored column by column), ``count ≠ 0``,
+   ``coeffs = √(4π)·e0 − occ @ (w·Y)`` with exact per-pixel solid angles ``w`` (basis rows in
+   the same column-major pixel order, so nothing is transposed).
 
 ``S`` ((edge, view) slots, all views), ``S2`` (those spanning more than one column) and ``K``
 (columns per edge) are static. When a pose needs more, the
@@ -337,7 +338,7 @@ def _stage_gather(slot, px, py, col, front, a, b, t1, *, directions):
     crosses = hi > lo
     run = jnp.where(crosses, xb - xa, 1.0)  # double where: no division by zero for idle slots
     slope = jnp.where(crosses, (yb - ya) / run, 0.0)
-    base = view * ((ny + 1) * nx)
+    base = view * ((ny + 1) * nx)  # the image of view g, stored column by column: (N_x, N_y + 1)
     return lo, hi, xa, ya, slope, base, sgn
 
 
@@ -357,7 +358,7 @@ def _stage_emit(params, most, *, views, directions, shell, long_slots, span):
         xj = (j.astype(dtype) + 0.5) * dx - tan_a
         y = ya + (xj - xa) * slope
         row = jnp.clip(jnp.floor((y + tan_a) / dy - 0.5) + 1.0, 0, ny).astype(jnp.int32)  # rows y_i ≤ y
-        return jnp.where(j < hi, base + row * nx + j, size)
+        return jnp.where(j < hi, base + j * (ny + 1) + row, size)
 
     # every slot emits its first crossing; the few edges spanning more columns are gathered into
     # one global list of ``long_slots`` entries that emit the crossings 1 … span − 1
@@ -372,7 +373,7 @@ def _stage_emit(params, most, *, views, directions, shell, long_slots, span):
     diff = jnp.zeros((size,), dtype).at[jnp.concatenate(idx)].add(jnp.concatenate(val), mode="drop")
     counts = jnp.stack([most, n_long, jnp.max(hi - lo)])  # needed vs static (S, S2, K)
     overflow = jnp.any(counts > jnp.asarray([n_slots, long_slots, span], jnp.int32))
-    return diff.reshape(views, ny + 1, nx), overflow, counts
+    return diff.reshape(views, nx, ny + 1), overflow, counts
 
 
 # --------------------------------------------------------------------------------------------
@@ -382,16 +383,17 @@ def _stage_emit(params, most, *, views, directions, shell, long_slots, span):
 
 @jax.jit
 def _stage_occlusion(diff):
-    ny = diff.shape[1] - 1
-    tril = (jnp.arange(ny + 1)[None, :] <= jnp.arange(ny)[:, None]).astype(diff.dtype)  # (N_y, N_y + 1)
-    count = jnp.einsum("ir,grj->gij", tril, diff)
-    return count != 0  # (G, N_y, N_x)
+    """Occlusion (G, N_x, N_y) (column-major images) from the difference images (G, N_x, N_y + 1)."""
+    g, nx, ny1 = diff.shape
+    triu = (jnp.arange(ny1)[:, None] <= jnp.arange(ny1 - 1)[None, :]).astype(diff.dtype)  # (N_y + 1, N_y)
+    count = diff.reshape(g * nx, ny1) @ triu  # prefix sums over rows as one matmul: layer counts
+    return (count != 0).reshape(g, nx, ny1 - 1)
 
 
 @partial(jax.jit, static_argnames=("n",))
 def _stage_sh(diff, basis_w, *, n):
-    g, _, nx = diff.shape
-    occ = _stage_occlusion(diff).reshape(g, -1).astype(basis_w.dtype)
+    g = diff.shape[0]
+    occ = _stage_occlusion(diff).reshape(g, -1).astype(basis_w.dtype)  # column-major pixel order
     full = jnp.zeros(n * n, basis_w.dtype).at[0].set(math.sqrt(4.0 * math.pi))
     return full - occ @ basis_w
 
@@ -537,7 +539,8 @@ def edgescan_occlusion(
         vertices, faces, grid, directions, shell, edge_table, slots
     )
     diff, overflow, _, _ = _compute(vertices, faces, table, grid, directions, shell, slots)
-    return _stage_occlusion(diff).reshape(*grid, *directions), jnp.asarray(overflow)
+    occ = jnp.swapaxes(_stage_occlusion(diff), -1, -2)  # (G, N_y, N_x)
+    return occ.reshape(*grid, *directions), jnp.asarray(overflow)
 
 
 def bsv_mesh_edgescan(
@@ -589,11 +592,13 @@ def bsv_mesh_edgescan(
 
 @lru_cache(maxsize=32)
 def _np_basis_weights(directions, shell, n, dtype_name):
+    ny, nx = directions
     with jax.ensure_compile_time_eval():
         d, w = edgescan_cone_directions(directions, shell, dtype_name)
-        return np.asarray(sh_basis(d, n) * w[:, None])
+        bw = np.asarray(sh_basis(d, n) * w[:, None])
+    return np.ascontiguousarray(bw.reshape(ny, nx, -1).transpose(1, 0, 2).reshape(ny * nx, -1))
 
 
 def _basis_weights(directions, shell, n, dtype):
-    """``w_k · Y(ω_k)`` (K, n²) of the pixel-centre directions, cached per configuration."""
+    """``w_k · Y(ω_k)`` (K, n²) of the pixel-centre directions, column-major pixel order, cached."""
     return jnp.asarray(_np_basis_weights(directions, shell, n, jnp.dtype(dtype).name))
