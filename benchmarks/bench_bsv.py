@@ -130,13 +130,32 @@ def _machine():
     return f"{model}, {os.cpu_count()} logical CPUs; jax {jax.__version__} on {jax.devices()[0].platform}"
 
 
-def bench_one(name, size, runs):
+def _twist(vertices, amount):
+    """Rotate each slice y = const about the bounding-sphere centre's y axis by ``amount · (y − c_y) / r``."""
+    v = np.asarray(vertices, np.float64)
+    c = 0.5 * (v.min(0) + v.max(0))
+    r = np.max(np.linalg.norm(v - c, axis=1))
+    ang = amount * (v[:, 1] - c[1]) / r
+    x, z = v[:, 0] - c[0], v[:, 2] - c[2]
+    cos, sin = np.cos(ang), np.sin(ang)
+    out = np.stack([c[0] + cos * x + sin * z, v[:, 1], c[2] - sin * x + cos * z], -1)
+    return jnp.asarray(out, jnp.asarray(vertices).dtype)
+
+
+def bench_one(name, size, runs, twist=0.0):
     mesh = load_mesh(ROOT / "assets" / f"{name}.obj")
     v, f = mesh.vertices, mesh.faces
     directions = (size, size)
     table = build_edge_table(f, v.shape[0])
-    slots = edgescan_slots(v, f, GRID, directions, SHELL, edge_table=table)
-    row = dict(mesh=name, faces=int(f.shape[0]), size=size, slots=slots)
+    slots = edgescan_slots(v, f, GRID, directions, SHELL, edge_table=table)  # from the rest pose
+    label = name if twist == 0.0 else f"{name}, twisted {twist:g} rad/r"
+    if twist != 0.0:
+        v = _twist(v, twist)
+    need = edgescan_slots(v, f, GRID, directions, SHELL, margin=1.0, edge_table=table)
+    fits = all(
+        n <= s for n, s in zip(need, slots, strict=True)
+    )  # else every call recomputes with larger slots
+    row = dict(mesh=label, faces=int(f.shape[0]), size=size, slots=slots, fits=fits)
 
     def edgescan():
         return bsv_mesh_edgescan(v, f, N_BANDS, GRID, directions, SHELL, edge_table=table, slots=slots).coeffs
@@ -179,7 +198,8 @@ def _table(rows):
     head = (
         "| mesh (F) | dirs | edge-scan median / best (ms) | compile + 1st (s) | brute median (ms) | "
         "brute compile + 1st (s) | Embree trace (ms) | Embree full (ms) | edge-scan / Embree trace | "
-        "brute / Embree trace | mismatches vs Embree: edge-scan, brute (of rays) | slots (S, S2, K) |"
+        "brute / Embree trace | mismatches vs Embree: edge-scan, brute (of rays) | "
+        "slots (S, S2, K), rest pose |"
     )
     lines = [head, "|" + "---|" * 12]
     for r in rows:
@@ -187,7 +207,8 @@ def _table(rows):
             f"| {r['mesh']} ({r['faces']}) | {r['size']}² | **{r['es_med']:.2f}** / {r['es_best']:.2f} | "
             f"{r['es_first']:.2f} | {r['bf_med']:.0f} | {r['bf_first']:.2f} | {r['em_med']:.2f} | "
             f"{r['emf_med']:.2f} | {r['es_med'] / r['em_med']:.2f} | {r['bf_med'] / r['em_med']:.1f} | "
-            f"{r['mis_es']}, {r['mis_bf']} (of {r['rays']}; {100 * r['hit']:.0f} % occluded) | {r['slots']} |"
+            f"{r['mis_es']}, {r['mis_bf']} (of {r['rays']}; {100 * r['hit']:.0f} % occluded) | {r['slots']}"
+            f"{'' if r['fits'] else ' (overflow: retried)'} |"
         )
     return "\n".join(lines)
 
@@ -197,21 +218,24 @@ def main(argv=None):
     ap.add_argument("--runs", type=int, default=7)
     ap.add_argument("--meshes", nargs="+", default=["bunny_small", "bunny", "spot", "airplane"])
     ap.add_argument("--sizes", nargs="+", type=int, default=[32, 16])
+    ap.add_argument("--twisted", nargs="*", default=["bunny"], help="meshes also measured twisted")
+    ap.add_argument("--twist", type=float, default=1.0, help="twist (radians per bounding radius)")
     ap.add_argument("--out", type=Path, default=None, help="write a markdown report here")
     args = ap.parse_args(argv)
     load0 = os.getloadavg()
     rows = []
-    for name in args.meshes:
-        for size in args.sizes:
-            r = bench_one(name, size, args.runs)
-            rows.append(r)
-            print(
-                f"{name:12s} {size}²  edgescan {r['es_med']:7.2f} ms (best {r['es_best']:.2f}, "
-                f"first {r['es_first']:.2f} s)  brute {r['bf_med']:8.1f} ms  "
-                f"embree trace {r['em_med']:6.2f} ms full {r['emf_med']:6.2f} ms"
-                f"  mismatches {r['mis_es']} / {r['mis_bf']}",
-                flush=True,
-            )
+    jobs = [(name, size, 0.0) for name in args.meshes for size in args.sizes]
+    jobs += [(name, size, args.twist) for name in args.twisted for size in args.sizes]
+    for name, size, twist in jobs:
+        r = bench_one(name, size, args.runs, twist)
+        rows.append(r)
+        print(
+            f"{r['mesh']:12s} {size}²  edgescan {r['es_med']:7.2f} ms (best {r['es_best']:.2f}, "
+            f"first {r['es_first']:.2f} s)  brute {r['bf_med']:8.1f} ms  "
+            f"embree trace {r['em_med']:6.2f} ms full {r['emf_med']:6.2f} ms"
+            f"  mismatches {r['mis_es']} / {r['mis_bf']}",
+            flush=True,
+        )
     load1 = os.getloadavg()
     table = _table(rows)
     print(table)
