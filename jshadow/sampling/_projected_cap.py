@@ -115,7 +115,7 @@ def segment_area_inverse(w: Float[ArrayLike, "..."]) -> Float[Array, "..."]:
 
     Fold to w ≤ π/2 with ``R⁻¹(w) = −R⁻¹(π − w)``, start from a quintic fit in ``s = w^(2/3)`` and
     polish with two Newton steps (machine precision; the start matters because R' vanishes at
-    |x| = 1).
+    |x| = 1). One Newton step in float32, two in float64.
     """
     w = jnp.clip(jnp.asarray(w), 0.0, jnp.pi)
     upper = w > 0.5 * jnp.pi
@@ -126,7 +126,9 @@ def segment_area_inverse(w: Float[ArrayLike, "..."]) -> Float[Array, "..."]:
     for c in reversed(_FIT):
         poly = poly * s + c
     x = jnp.clip(1.0 - s * poly, 0.0, 1.0)
-    for _ in range(2):
+    # the fit is good to 1.6e-6 in x; one Newton step reaches 2e-11 (enough for float32), two reach
+    # the rounding limit of float64
+    for _ in range(1 if jnp.finfo(x.dtype).bits <= 32 else 2):
         chord = 2.0 * safe_sqrt((1.0 - x) * (1.0 + x))
         x = jnp.clip(x + safe_div(segment_area(x) - wf, chord), 0.0, 1.0)
     return jnp.where(upper, -x, x)
@@ -306,41 +308,53 @@ def sample_projected_cap(
     def chord(x):
         return safe_sqrt((1.0 - x) * (1.0 + x))
 
-    # FULL: uniform on the ellipse E
-    xu = -segment_area_inverse(jnp.pi * xi0)
-    full_x = g.cx + g.rx * xu
-    full_y = g.ry * chord(xu) * ys
-    full_pp = safe_div(1.0, jnp.pi * g.rx * g.ry)
+    case = g.case
+    is_full, is_ca, is_cb = case == CapCase.FULL, case == CapCase.CLIP_ABOVE, case == CapCase.CLIP_BELOW
 
-    # CLIP_ABOVE: cut ellipse (x ≤ t_x) ∪ cut disk (x ≥ t_x), uniform
-    q, area_e, area_d = _clip_above_areas(g)
+    # Every case inverts the segment area R once; select the argument per case so that the costly
+    # inverse (fit + 2 Newton steps) runs once per sample, not once per case.
+    q, area_e, area_d = _clip_above_areas(g)  # area_d = R(t_x): the cut disk, both clipped cases
     total = area_e + area_d
     p_e = safe_div(area_e, total)
-    in_e = xi0 < p_e
+    in_e = is_ca & (xi0 < p_e)  # CLIP_ABOVE: ξ0 picks the cut ellipse (else the cut disk)
     xi_e = safe_div(xi0, p_e)
-    xu_e = jnp.minimum(q, -segment_area_inverse(xi_e * (jnp.pi - segment_area(q))))
     xi_d = jnp.clip(safe_div(xi0 - p_e, 1.0 - p_e), 0.0, 1.0)
-    xd = jnp.maximum(g.tx, segment_area_inverse(area_d * (1.0 - xi_d)))  # continuous at the switch
-    ca_x = jnp.where(in_e, g.cx + g.rx * xu_e, xd)
-    ca_y = jnp.where(in_e, g.ry * chord(xu_e), chord(xd)) * ys
-    ca_pp = safe_div(1.0, total)
+    w = jnp.select(
+        [is_full, in_e, is_ca],
+        [
+            jnp.pi * xi0,  # FULL: x_u = −R⁻¹(π ξ0), area πξ0 left of x_u
+            xi_e * (jnp.pi - segment_area(q)),  # cut ellipse: x_u = −R⁻¹(ξ′(π − R(q))) ≤ q
+            area_d * (1.0 - xi_d),  # cut disk: x = R⁻¹(A_D(1 − ξ′)) ≥ t_x, continuous at the switch
+        ],
+        area_d * (1.0 - xi0),  # CLIP_BELOW: d_x = R⁻¹(A_D(1 − ξ0)) ≥ t_x
+    )
+    xr = segment_area_inverse(w)
+    xr = jnp.where(is_full | in_e, -xr, xr)
 
-    # CLIP_BELOW: uniform on the cut disk, then the warp (y, z) → (s_y(z) y, k z)
-    area_db, k = _warp_params(g)
-    dx = jnp.maximum(g.tx, segment_area_inverse(area_db * (1.0 - xi0)))
+    # FULL and the cut-ellipse part: affine map of the unit disk onto E (x_u ≤ q clamps overshoot)
+    xu = jnp.where(in_e, jnp.minimum(q, xr), xr)
+    ell_x = g.cx + g.rx * xu
+    ell_y = g.ry * chord(xu) * ys
+    # cut-disk part (CLIP_ABOVE) and the source point of the warp (CLIP_BELOW)
+    dx = jnp.maximum(g.tx, xr)
     dy = chord(dx) * ys
+
+    # CLIP_BELOW: the warp (y, z) → (s_y(z) y, k z) of the lifted cut disk
+    _, k = _warp_params(g)
     dz = jnp.minimum(safe_sqrt((1.0 - dx) * (1.0 + dx) - dy * dy), g.ty)
     sy = _warp_scale(g, dz)
     cb_z = k * dz
     cb_y = sy * dy
     cb_x = safe_sqrt(1.0 - cb_y * cb_y - cb_z * cb_z)
-    cb_pp = safe_div(cb_x, k * k * area_db * dx * sy)
 
-    case = g.case
-    is_full, is_ca, is_cb = case == CapCase.FULL, case == CapCase.CLIP_ABOVE, case == CapCase.CLIP_BELOW
+    full_pp = safe_div(1.0, jnp.pi * g.rx * g.ry)
+    ca_pp = safe_div(1.0, total)
+    cb_pp = safe_div(cb_x, k * k * area_d * dx * sy)
+
     valid = is_full | is_ca | is_cb
-    wx = jnp.select([is_full, is_ca], [full_x, ca_x], cb_x)
-    wy = jnp.select([is_full, is_ca], [full_y, ca_y], cb_y)
+    on_ellipse = is_full | in_e
+    wx = jnp.select([on_ellipse, is_ca], [ell_x, dx], cb_x)
+    wy = jnp.select([on_ellipse, is_ca], [ell_y, dy], cb_y)
     wz = jnp.where(is_cb, cb_z, safe_sqrt(1.0 - wx * wx - wy * wy))
     pdf_proj = jnp.where(valid, jnp.select([is_full, is_ca], [full_pp, ca_pp], cb_pp), 0.0)
     d = wx[..., None] * g.xhat + wy[..., None] * g.yhat + wz[..., None] * g.n
