@@ -9,7 +9,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from jshadow._numerics import eps
+from jshadow._numerics import eps, safe_acos, safe_atan2
 from jshadow.sh import project, rotate, rotation_matrix, sh_basis, sphere_grid
 
 
@@ -119,6 +119,29 @@ def test_gradients_finite_at_axes_and_identity(axis, angle):
     assert np.isfinite(g)
     jr = _jac_rotmat(jnp.asarray(_axis_rot(axis, angle)))
     assert jr.shape == (25, 25, 3, 3) and np.all(np.isfinite(jr))
+
+
+def _frame_from_dir(d):
+    """Spherical frame [e_θ | −e_φ | −u] of a unit direction u = d (world = frame @ local)."""
+    theta, phi = safe_acos(d[2]), safe_atan2(d[1], d[0])
+    st, ct, sp, cp = jnp.sin(theta), jnp.cos(theta), jnp.sin(phi), jnp.cos(phi)
+    x = jnp.stack([ct * cp, ct * sp, -st])
+    y = jnp.stack([sp, -cp, jnp.zeros_like(sp)])
+    return jnp.stack([x, y, -jnp.stack([st * cp, st * sp, ct])], axis=-1)
+
+
+_jac_frame_rotate = jax.jit(jax.jacrev(lambda d, c: rotate(c, _frame_from_dir(d))))
+
+
+@pytest.mark.usefixtures("x64")
+@pytest.mark.parametrize("d", [[0, 0, 1.0], [0, 0, -1.0], [1.0, 0, 0], [0, -1.0, 0]])
+def test_gradient_finite_for_frames_built_at_poles(d):
+    d = jnp.asarray(d)
+    c = jnp.linspace(0.5, 2.0, 16)
+    R = _frame_from_dir(d)
+    np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-15)
+    jac = _jac_frame_rotate(d, c)
+    assert jac.shape == (16, 3) and np.all(np.isfinite(jac))
 
 
 def _rot_jax(axis, theta):
