@@ -99,9 +99,11 @@ def _embree_rays(vertices, directions, local):
     radius = np.max(np.linalg.norm(v - center, axis=1))
     u, frames = _np_frames()
     points = center + SHELL * radius * u
-    dirs = np.einsum("gab,kb->gka", frames, local).reshape(-1, 3)
-    origins = np.repeat(points, local.shape[0], axis=0)
-    return origins.astype(np.float32), dirs.astype(np.float32)
+    k = local.shape[0]
+    dirs = np.matmul(local.astype(np.float32)[None], frames.astype(np.float32).transpose(0, 2, 1))
+    origins = np.empty((points.shape[0], k, 3), np.float32)
+    origins[...] = points.astype(np.float32)[:, None, :]
+    return origins.reshape(-1, 3), dirs.reshape(-1, 3)
 
 
 def _embree_scene(vertices, faces):
