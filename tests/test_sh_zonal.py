@@ -5,6 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from conftest import BATCH_SHAPES, random_dirs
+from scipy.special import eval_legendre
 
 from jshadow._numerics import eps
 from jshadow.sh import (
@@ -14,6 +15,7 @@ from jshadow.sh import (
     rotate,
     sh_basis,
     zonal_cap,
+    zonal_cap_versine,
     zonal_clamped_cosine,
     zonal_rotate,
 )
@@ -168,3 +170,34 @@ def test_python_number_takes_axis_dtype():
     c = cap(axis, 0.5, 3)
     assert c.dtype == jnp.float32
     np.testing.assert_allclose(c[0], np.sqrt(np.pi) * 0.5, rtol=eps(jnp.float32))
+
+
+def _cap_reference(t):
+    """float64 z_l, l < 6, from scipy's Legendre polynomials at the given t."""
+    t = np.float64(t)
+    rest = [
+        np.sqrt(np.pi / (2 * l + 1)) * (eval_legendre(l - 1, t) - eval_legendre(l + 1, t))
+        for l in range(1, 6)
+    ]
+    return np.array([np.sqrt(np.pi) * (1 - t), *rest])
+
+
+@pytest.mark.parametrize("alpha", [1.0, 0.1, 0.01, 0.003])
+def test_small_caps_accurate_in_float32(alpha):
+    # same float32 input, exact arithmetic as reference: no cancellation for small caps
+    t32 = np.float32(np.cos(alpha))
+    got = np.asarray(zonal_cap(jnp.asarray(t32), 6))
+    np.testing.assert_allclose(got, _cap_reference(t32), rtol=eps(jnp.float32))
+    u32 = np.float32(2 * np.sin(alpha / 2) ** 2)
+    got_v = np.asarray(zonal_cap_versine(jnp.asarray(u32), 6))
+    np.testing.assert_allclose(got_v, _cap_reference(1 - np.float64(u32)), rtol=eps(jnp.float32))
+
+
+@pytest.mark.usefixtures("x64")
+def test_branches_agree_at_the_switch():
+    # the u-series (t >= 0.9) and the recurrence are the same polynomial: check both sides
+    for t in [0.9 - 1e-12, 0.9, 0.95, 0.3, -0.7]:
+        np.testing.assert_allclose(zonal_cap(jnp.asarray(t), 8)[:6], _cap_reference(t), atol=1e-13)
+        np.testing.assert_allclose(
+            zonal_cap_versine(jnp.asarray(1 - t), 8), zonal_cap(jnp.asarray(t), 8), atol=1e-13
+        )

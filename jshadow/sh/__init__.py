@@ -22,5 +22,6 @@ from ._triple import sh_product as sh_product
 from ._zonal import cap as cap
 from ._zonal import clamped_cosine as clamped_cosine
 from ._zonal import zonal_cap as zonal_cap
+from ._zonal import zonal_cap_versine as zonal_cap_versine
 from ._zonal import zonal_clamped_cosine as zonal_clamped_cosine
 from ._zonal import zonal_rotate as zonal_rotate
