@@ -139,6 +139,7 @@ def test_batch_shapes(rng, shape):
     axis = jnp.asarray(random_dirs(rng, shape, np.float32))
     t = jnp.asarray(rng.uniform(-1, 1, size=shape).astype(np.float32))
     assert zonal_cap(t, 4).shape == (*shape, 4)
+    np.testing.assert_allclose(zonal_cap_versine(1 - t, 4), zonal_cap(t, 4), atol=eps(jnp.float32, 10))
     c = cap(axis, t, 4)
     assert c.shape == (*shape, 16) and c.dtype == jnp.float32
     cc = clamped_cosine(axis, 4)
