@@ -109,10 +109,14 @@ def _check_inputs(vertices, faces):
         raise ValueError(f"vertices must have shape (V, 3) with V >= 1, got {vertices.shape}")
     if not jnp.issubdtype(vertices.dtype, jnp.floating):
         raise ValueError(f"vertices must be a float array, got {vertices.dtype}")
-    faces = jnp.asarray(faces)
-    if faces.ndim != 2 or faces.shape[-1] != 3 or not jnp.issubdtype(faces.dtype, jnp.integer):
+    if isinstance(faces, jax.core.Tracer):  # traced topology: only bsv_sh_tangent accepts it
+        if faces.ndim != 2 or faces.shape[-1] != 3 or not jnp.issubdtype(faces.dtype, jnp.integer):
+            raise ValueError(f"faces must be an int array of shape (F, 3), got {faces.dtype} {faces.shape}")
+        return vertices, faces.astype(jnp.int32)
+    faces = np.asarray(faces)  # concrete topology stays a numpy constant under jit
+    if faces.ndim != 2 or faces.shape[-1] != 3 or not np.issubdtype(faces.dtype, np.integer):
         raise ValueError(f"faces must be an int array of shape (F, 3), got {faces.dtype} {faces.shape}")
-    return vertices, faces.astype(jnp.int32)
+    return vertices, faces.astype(np.int32)
 
 
 def bsv_sh_tangent(

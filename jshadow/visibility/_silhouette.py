@@ -37,9 +37,12 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax import lax
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from .._numerics import eps, safe_atan2, safe_div, safe_norm
+
+_FACE_CHUNK = 8  # faces per lax.scan step of the visibility test
 
 __all__ = ["EdgeTable", "silhouette_edges_table", "SilhouetteSamples", "silhouette_samples"]
 
@@ -136,13 +139,39 @@ class SilhouetteSamples(eqx.Module):
     count: Int[Array, ""]
 
 
-def _face_cones(rel: Float[Array, "F 3 3"]) -> tuple[Float[Array, "3 3F"], Bool[Array, " F"]]:
-    """Edge-plane normals of each face's cone at the origin, signed so that inside means all ≥ 0."""
-    nrm = jnp.cross(rel, jnp.roll(rel, -1, axis=1))  # (F, edge k: corner k -> k+1, xyz)
-    vol = jnp.sum(nrm[:, 0] * rel[:, 2], axis=-1)  # det[a, b, c] relative to p
-    sgn = jnp.sign(vol).astype(rel.dtype)
-    nrm = nrm * sgn[:, None, None]
-    return jnp.transpose(nrm, (2, 1, 0)).reshape(3, -1), vol != 0  # column k·F + f
+def _face_cones(rel: Float[Array, "F 3 3"]) -> Float[Array, "F 3 3"]:
+    """Edge-plane normals (F, edge, xyz) of each face's cone at the origin, signed so that a direction
+    is inside iff all three dot products are ≥ 0 (and one is > 0). Faces whose plane contains the
+    origin, and zero-area faces, get zero normals and are never hit."""
+    nrm = jnp.cross(rel, jnp.roll(rel, -1, axis=1))  # edge k: corner k -> k+1
+    vol = jnp.sum(nrm[:, 0] * rel[:, 2], axis=-1)  # det[a, b, c] relative to the origin
+    return nrm * jnp.sign(vol).astype(rel.dtype)[:, None, None]
+
+
+def _any_hit_masked(
+    dirs: Float[Array, "R 3"], cones: Float[Array, "F 3 3"], skip0: Int[Array, " R"], skip1: Int[Array, " R"]
+) -> Bool[Array, " R"]:
+    """Whether each ray from the cones' common origin along ``dirs`` enters any face other than
+    ``skip0``/``skip1``. Written as explicit multiply-adds so that XLA fuses the dot products, the
+    sign tests and the reduction over faces into one loop (no (R, F) array is stored)."""
+    n_f = cones.shape[0]
+    n_chunks = -(-n_f // _FACE_CHUNK)
+    pad = n_chunks * _FACE_CHUNK - n_f  # padding faces have zero normals: never hit
+    cones = jnp.concatenate([cones, jnp.zeros((pad, 3, 3), cones.dtype)]).reshape(n_chunks, _FACE_CHUNK, 3, 3)
+    fids = jnp.arange(n_chunks * _FACE_CHUNK, dtype=jnp.int32).reshape(n_chunks, _FACE_CHUNK)
+    ox, oy, oz = dirs[:, 0], dirs[:, 1], dirs[:, 2]
+
+    def body(hit, xs):
+        c_chunk, f_chunk = xs
+        for c in range(_FACE_CHUNK):  # unrolled: each face is one vectorised pass over the rays
+            s = [ox * c_chunk[c, k, 0] + oy * c_chunk[c, k, 1] + oz * c_chunk[c, k, 2] for k in range(3)]
+            lo = jnp.minimum(jnp.minimum(s[0], s[1]), s[2])
+            hi = jnp.maximum(jnp.maximum(s[0], s[1]), s[2])
+            hit = hit | ((lo >= 0) & (hi > 0) & (skip0 != f_chunk[c]) & (skip1 != f_chunk[c]))
+        return hit, None
+
+    hit, _ = lax.scan(body, jnp.zeros(dirs.shape[0], bool), (cones, fids))
+    return hit
 
 
 def silhouette_samples(
@@ -213,13 +242,9 @@ def silhouette_samples(
     m_len = r_a * b_y  # |m| = r_a · b_y
 
     # masked whole-line visibility: ray from p along ω to infinity, ignoring the edge's two faces
-    cones, valid = _face_cones(rel)
-    n_faces = faces.shape[0]
-    dots = (omega.reshape(-1, 3) @ cones).reshape(slots, nodes, 3, n_faces)
-    inside = jnp.all(dots >= 0, axis=2) & (jnp.sum(dots, axis=2) > 0) & valid
-    fid = jnp.arange(n_faces, dtype=jnp.int32)
-    own = (fid == f0[idx][:, None]) | (fid == f1[idx][:, None])  # (K, F)
-    hit = jnp.any(inside & ~own[:, None, :], axis=-1)  # (K, n)
+    skip0 = jnp.broadcast_to(f0[idx][:, None], (slots, nodes)).reshape(-1)
+    skip1 = jnp.broadcast_to(f1[idx][:, None], (slots, nodes)).reshape(-1)
+    hit = _any_hit_masked(omega.reshape(-1, 3), _face_cones(rel), skip0, skip1).reshape(slots, nodes)
     chi = (~hit & ok[:, None]).astype(dtype)
     q = chi * safe_div(w_psi, r * m_len[:, None])
     return SilhouetteSamples(a=a_id, b=b_id, m=m, s=s, omega=omega, q=q, count=count)
