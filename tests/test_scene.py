@@ -7,7 +7,6 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import trimesh
-from jshadow.visibility import bsv_sample_points, bsv_sphere
 
 from jshadow.entities import (
     Environment,
@@ -22,6 +21,7 @@ from jshadow.field import bsv_visibility_sh, sphere_visibility_sh
 from jshadow.geometry import normalize_to_unit_sphere
 from jshadow.runner import Renderer
 from jshadow.scene import occlusion_table, render, render_at
+from jshadow.visibility import bsv_sample_points, bsv_sphere
 
 
 def plane(n=9, size=4.0, y=0.0):
