@@ -349,7 +349,11 @@ def test_table_nodes_and_interpolation_error(table64):
     assert isinstance(t, MkTable) and t.values.shape == (16, 41)
     d = np.asarray(t.distances)
     np.testing.assert_allclose(d[[0, -1]], [8.0, 0.2], rtol=1e-14)
-    np.testing.assert_allclose(d[:-1] / d[1:], (8.0 / 0.2) ** (1 / 15), rtol=1e-12)  # geometric
+    assert 1.0 in d  # the shell itself is a node (M = I there)
+    i = int(np.flatnonzero(d == 1.0)[0])  # geometric on each side of the shell
+    for part in (d[: i + 1], d[i:]):
+        np.testing.assert_allclose(part[:-1] / part[1:], part[0] / part[1], rtol=1e-12)
+    np.testing.assert_allclose(mk_interpolate(t, jnp.asarray(1.0)), np.eye(16), atol=1e-14)
     ks = np.asarray(t.ks)
     np.testing.assert_allclose(mk_interpolate(t, jnp.asarray(ks[5])), mk_matrix(ks[5]), atol=1e-14)
     mids = 0.5 * (ks[:-1] + ks[1:])
@@ -357,8 +361,8 @@ def test_table_nodes_and_interpolation_error(table64):
         [np.abs(np.asarray(mk_interpolate(t, jnp.asarray(k))) - mk_matrix(k)).max() for k in mids]
     )
     print("\nmax |M_interp − M_k| at midpoints (d = 1/k):", dict(zip(np.round(1 / mids, 3), errs.round(4))))
-    assert errs.max() < 0.08
-    assert errs[1 / mids > 1.0].max() < 0.04  # outside the shell
+    assert errs.max() < 0.06
+    assert errs[1 / mids > 1.0].max() < 0.05  # outside the shell (largest just beyond it)
 
 
 @pytest.mark.usefixtures("x64")
