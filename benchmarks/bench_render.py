@@ -25,8 +25,8 @@ import time
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jshadow.config import build_scene, load_config
 
+from jshadow.config import build_scene, load_config
 from jshadow.entities import Environment, Method, Receivers, Scene, SphereOccluder
 from jshadow.runner import Renderer
 
