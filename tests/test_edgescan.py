@@ -190,8 +190,8 @@ def test_overflow_is_repaired_and_traced_overflow_raises(bunny_small):
     np.testing.assert_allclose(np.asarray(traced), np.asarray(good), atol=eps(jnp.float32))
     with pytest.raises(Exception, match="overflowed"):
         jax.block_until_ready(jax.jit(lambda x: coeffs(x, (32, 1, 1)))(v))
-    with pytest.raises(ValueError, match="slots"):
-        jax.jit(lambda x: coeffs(x, None))(v)
+    default = jax.jit(lambda x: coeffs(x, None))(v)  # traced without slots: generous defaults
+    np.testing.assert_allclose(np.asarray(default), np.asarray(good), atol=eps(jnp.float32))
 
 
 def test_similarity_invariance(bunny_small):
