@@ -80,11 +80,17 @@ class _Geometry(eqx.Module):
     offset: Float[Array, ""]  # ray-origin offset ε along the normal, and minimum hit distance
 
 
-def _occluded(geo: _Geometry, o, d, t_max):
-    """Any-hit against all occluders for rays o + t d, ε < t < t_max (shapes (..., 3), (...))."""
-    hit = jnp.zeros(d.shape[:-1], bool)
+def _occluded_spheres(geo: _Geometry, o, d, t_max):
+    """Any-hit against the sphere occluders for rays o + t d, ε < t < t_max."""
+    hit = jnp.zeros(jnp.broadcast_shapes(o.shape[:-1], d.shape[:-1]), bool)
     for s in range(geo.sphere_radii.shape[0]):
         hit = hit | ray_sphere_any_hit(o, d, geo.sphere_centers[s], geo.sphere_radii[s], geo.offset, t_max)
+    return hit
+
+
+def _occluded(geo: _Geometry, o, d, t_max):
+    """Any-hit against all occluders (spheres, then every mesh triangle), inside one jit."""
+    hit = _occluded_spheres(geo, o, d, t_max)
     for vertices, faces in geo.meshes:
         hit = hit | ray_triangle_any_hit(o, d, vertices, faces, geo.offset, t_max)
     return hit
@@ -100,9 +106,10 @@ def _light_distance(o, d, center, radius):
 
 
 @eqx.filter_jit
-def _estimate_block(geo: _Geometry, points, normals, ridx, key, block, spp, heuristic_power):
-    """Per receiver: mean and M2 (sum of squared deviations) of the per-sample estimates of E in
-    one block of ``_BLOCK`` samples (samples beyond ``spp`` are masked), and the count."""
+def _sample_block(geo: _Geometry, points, normals, ridx, key, block, heuristic_power):
+    """One block of ``_BLOCK`` samples per receiver, every strategy: the rays (origins (R, 1, 3),
+    directions (R, B, K, 3), t_max (R, B, K)), the contribution (R, B, K, 3) each ray adds to the
+    estimate of E if it is unoccluded, and whether a sphere occluder already blocks it."""
     dtype = points.dtype
     n_lights = geo.light_radii.shape[0]
     env = geo.environment
@@ -114,43 +121,93 @@ def _estimate_block(geo: _Geometry, points, normals, ridx, key, block, spp, heur
     p = points[:, None, :]
     n = normals[:, None, :]
     o = p + geo.offset * n  # (R, 1, 3)
-    value = jnp.zeros((*u.shape[:2], 3), dtype)
+    dirs, tmax, contrib = [], [], []
     col = 0
     if use_env:
         cs = sample_cosine_hemisphere(u[..., col : col + 2], n)
         col += 2
-        vis_c = ~_occluded(geo, o, cs.direction, jnp.inf)
-        lc = jnp.where(vis_c[..., None], env.radiance_at(cs.direction), 0.0)
+        lc = env.radiance_at(cs.direction)
         if use_mis:
             es = sample_environment(geo.env_sampler, u[..., col : col + 2])
             col += 2
             cos_e = jnp.maximum(jnp.sum(es.direction * n, axis=-1), 0.0)
-            vis_e = ~_occluded(geo, o, es.direction, jnp.inf) & (cos_e > 0) & es.valid
-            le = jnp.where(vis_e[..., None], env.radiance_at(es.direction), 0.0)
+            le = jnp.where(((cos_e > 0) & es.valid)[..., None], env.radiance_at(es.direction), 0.0)
             pc_c, pe_c = cs.pdf, environment_pdf(geo.env_sampler, cs.direction)
             pc_e, pe_e = cos_e / jnp.pi, es.pdf
             b = heuristic_power
             w_c = safe_div(pc_c**b, pc_c**b + pe_c**b)
             w_e = safe_div(pe_e**b, pc_e**b + pe_e**b)
             # cosine strategy: L V cos / p_c = π L V (p_c > 0 on the sampled hemisphere)
-            value = value + (w_c * jnp.pi)[..., None] * lc
-            value = value + (w_e * safe_div(cos_e, pe_e))[..., None] * le
+            dirs += [cs.direction, es.direction]
+            contrib += [(w_c * jnp.pi)[..., None] * lc, (w_e * safe_div(cos_e, pe_e))[..., None] * le]
+            tmax += [jnp.full(cs.pdf.shape, jnp.inf, dtype)] * 2
         else:
-            value = value + jnp.pi * lc
+            dirs.append(cs.direction)
+            contrib.append(jnp.pi * lc)
+            tmax.append(jnp.full(cs.pdf.shape, jnp.inf, dtype))
     for li in range(n_lights):
         center, radius = geo.light_centers[li], geo.light_radii[li]
         ls = sample_projected_cap(u[..., col : col + 2], n, center - p, radius)
         col += 2
-        t_max = _light_distance(o, ls.direction, center, radius)
-        vis = ~_occluded(geo, o, ls.direction, t_max) & ls.valid
-        w = jnp.where(vis, safe_div(1.0, ls.pdf_proj), 0.0)  # L V max(0, n·ω) / p_ω = L V / p⊥
-        value = value + w[..., None] * geo.light_radiance[li]
-    sample_id = block * _BLOCK + jnp.arange(_BLOCK, dtype=jnp.int32)
-    live = (sample_id < spp).astype(dtype)[None, :, None]
-    count = jnp.sum(live[0, :, 0])
-    mean = jnp.sum(value * live, axis=1) / count
-    m2 = jnp.sum(((value - mean[:, None, :]) * live) ** 2, axis=1)
-    return mean, m2, count
+        w = jnp.where(ls.valid, safe_div(1.0, ls.pdf_proj), 0.0)  # L V max(0, n·ω) / p_ω = L V / p⊥
+        dirs.append(ls.direction)
+        contrib.append(w[..., None] * geo.light_radiance[li])
+        tmax.append(_light_distance(o, ls.direction, center, radius))
+    if not dirs:
+        shape = (points.shape[0], _BLOCK, 0)
+        return o, jnp.zeros((*shape, 3), dtype), jnp.zeros(shape, dtype), jnp.zeros((*shape, 3), dtype), None
+    dirs = jnp.stack(dirs, axis=2)
+    tmax = jnp.stack(tmax, axis=2)
+    contrib = jnp.stack(contrib, axis=2)
+    blocked = _occluded_spheres(geo, o[:, :, None, :], dirs, tmax)
+    return o, dirs, tmax, contrib, blocked
+
+
+_trace_meshes = jax.jit(ray_triangle_any_hit)
+
+
+def _bucket(m: int) -> int:
+    """Padded ray count: a power of two ≥ 1024 (few distinct shapes, few compilations)."""
+    return max(1024, 1 << (m - 1).bit_length())
+
+
+def _trace_culled(meshes_host, vertices_faces, origins, dirs, tmax, offset, todo):
+    """Mesh any-hit for the rays flagged in ``todo`` (numpy bool), after culling by each mesh's
+    bounding ball: a ray segment that misses the ball cannot hit the mesh. The candidate rays are
+    compacted on the host and traced in power-of-two batches by ``ray_triangle_any_hit``."""
+    hit = np.zeros(todo.shape, bool)
+    for (center, radius), (vertices, faces) in zip(meshes_host, vertices_faces, strict=True):
+        oc = center - origins
+        t_closest = np.clip(np.sum(oc * dirs, axis=-1), offset, tmax)
+        gap = origins + t_closest[..., None] * dirs - center
+        near = np.sum(gap * gap, axis=-1) <= (radius * (1.0 + 1e-4) + offset) ** 2
+        idx = np.flatnonzero(todo & ~hit & near)
+        if idx.size == 0:
+            continue
+        m = _bucket(idx.size)
+        pad = np.concatenate([idx, np.full(m - idx.size, idx[0])])
+        res = _trace_meshes(
+            jnp.asarray(origins.reshape(-1, 3)[pad]),
+            jnp.asarray(dirs.reshape(-1, 3)[pad]),
+            vertices,
+            faces,
+            jnp.asarray(offset, vertices.dtype),
+            jnp.asarray(tmax.reshape(-1)[pad]),
+        )
+        flat = hit.reshape(-1)
+        flat[idx] |= np.asarray(res)[: idx.size]
+    return hit
+
+
+def _visible(geo: _Geometry, meshes_host, origins, dirs, tmax, blocked, contrib):
+    """Visibility (numpy bool, shape of ``tmax``) of the rays that can contribute."""
+    dtype = np.dtype(dirs.dtype)
+    origins = np.broadcast_to(np.asarray(origins), dirs.shape).astype(dtype)
+    dirs, tmax = np.asarray(dirs), np.asarray(tmax)
+    todo = ~np.asarray(blocked) & np.any(np.asarray(contrib) != 0, axis=-1)
+    if geo.meshes:
+        todo &= ~_trace_culled(meshes_host, geo.meshes, origins, dirs, tmax, float(geo.offset), todo)
+    return todo
 
 
 def _scene_size(points, scene: Scene, meshes) -> float:
@@ -240,6 +297,11 @@ def reference(
         env_sampler=environment_sampler(env) if env is not None and env.kind == "hdr" else None,
         offset=jnp.asarray(eps(dtype, 100.0) * size, dtype),
     )
+    meshes_host = []
+    for vertices, _ in meshes:
+        v = np.asarray(vertices, np.float64)
+        center = 0.5 * (v.min(axis=0) + v.max(axis=0))
+        meshes_host.append((center, float(np.sqrt(np.max(np.sum((v - center) ** 2, axis=-1))))))
     n_recv = points.shape[0]
     n_rays = max(len(scene.lights) + (0 if env is None else 1 + (env.kind == "hdr")), 1)
     if chunk is None:
@@ -261,8 +323,18 @@ def reference(
         s_acc = np.zeros((chunk, 3))
         n_acc = 0.0
         for b in range(n_blocks):
-            bm, bm2, bn = _estimate_block(geo, pts, nrm, ridx, key, jnp.asarray(b, jnp.int32), spp, power)
-            bm, bm2, bn = np.asarray(bm, np.float64), np.asarray(bm2, np.float64), float(bn)
+            o, dirs, tmax, contrib, blocked = _sample_block(
+                geo, pts, nrm, ridx, key, jnp.asarray(b, jnp.int32), power
+            )
+            if dirs.shape[2] == 0:
+                value = np.zeros((chunk, _BLOCK, 3))
+            else:
+                vis = _visible(geo, meshes_host, o[:, :, None, :], dirs, tmax, blocked, contrib)
+                value = np.sum(np.where(vis[..., None], np.asarray(contrib, np.float64), 0.0), axis=2)
+            live = (b * _BLOCK + np.arange(_BLOCK)) < spp  # samples beyond spp are masked
+            bn = float(np.sum(live))
+            bm = np.mean(value[:, live], axis=1)
+            bm2 = np.sum((value[:, live] - bm[:, None, :]) ** 2, axis=1)
             # Chan et al.: merge (n_acc, m_acc, s_acc) with the block's (bn, bm, bm2)
             tot = n_acc + bn
             delta = bm - m_acc

@@ -23,7 +23,7 @@ from jshadow.entities import (
     SphereOccluder,
 )
 from jshadow.geometry import icosphere
-from jshadow.reference import ReferenceResult, _occluded, reference
+from jshadow.reference import ReferenceResult, _occluded, _visible, reference
 
 
 def z_threshold(m, family_alpha=0.01):
@@ -127,17 +127,30 @@ def embree_hits(vertices, faces, origins, dirs):
 
 
 def test_visibility_matches_embree(rng):
+    """The reference's visibility (in-jit brute force, and the host path that culls by the
+    bounding ball and compacts the candidate rays) against Embree on the same rays."""
     occ = sphere_mesh_occluder([0.1, 1.0, 0.0], 0.6, np.float32)
     v, f = occ.vertices(0.0), occ.faces
     o = np.tile(rng.uniform(-1.5, 1.5, size=(64, 1, 3)) * [1, 0, 1], (1, 64, 1)).astype(np.float32)
     target = np.array([0.1, 1.0, 0.0]) + 0.7 * rng.normal(size=(64, 64, 3)) / np.sqrt(3)  # near the rim
     d = target - o
+    d[:, ::2] = rng.normal(size=(64, 32, 3))  # and rays in all directions
     d = (d / np.linalg.norm(d, axis=-1, keepdims=True)).astype(np.float32)
-    geo_hits = _occluded(_geo_with_mesh(v, f), jnp.asarray(o), jnp.asarray(d), jnp.inf)
-    ours = np.asarray(geo_hits).ravel()
+    geo = _geo_with_mesh(v, f)
     theirs = embree_hits(v, f, o.reshape(-1, 3), d.reshape(-1, 3))
     assert 0.1 < theirs.mean() < 0.9  # a meaningful mix of hits and misses
+    ours = np.asarray(_occluded(geo, jnp.asarray(o), jnp.asarray(d), jnp.inf)).ravel()
     assert np.mean(ours != theirs) <= 1e-3  # grazing rays may differ by float32 rounding
+    tmax = np.full(d.shape[:-1], np.inf, np.float32)
+    ones = np.ones(d.shape, np.float32)
+    host = [(np.array([0.1, 1.0, 0.0]), 0.6)]
+    culled = ~_visible(geo, host, o, d, tmax, np.zeros(tmax.shape, bool), ones)
+    np.testing.assert_array_equal(culled.ravel(), ours)
+    # a segment that ends before the mesh is never occluded
+    short = ~_visible(
+        geo, host, o, d, np.full(tmax.shape, 0.05, np.float32), np.zeros(tmax.shape, bool), ones
+    )
+    assert not np.any(short)
 
 
 def _geo_with_mesh(v, f):
