@@ -29,7 +29,8 @@ Stages (each a separate ``jax.jit``; on XLA:CPU one fused jit recomputes gathers
    coordinates and start columns, and the (face, view) facing bits;
 2. compact: the (edge, view) candidates (silhouette and crossing at least one column), packed 32
    per word; slot s finds the word holding the candidate of rank s (prefix of popcounts, a small
-   scatter and a running maximum) and the bit inside it (select-nth-set-bit), so the ``S`` slots
+   scatter and a running maximum, both as parallel scans) and the bit inside it
+   (select-nth-set-bit), so the ``S`` slots
    (one list for all views) are filled without a scatter over all (edge, view) pairs;
 3. emit: per slot, up to ``K`` column crossings, each one scatter-add into the difference image;
 4. project onto SH: row prefix sum by one matmul (images stored column by column), ``count ≠ 0``,
@@ -279,19 +280,18 @@ def _compact(words, slots):
 
     Returns ``pos`` (slots,) int32 (bit position ``32w + k``; −1 past the count) and the count of
     set bits (). Slot s finds the word holding the set bit of rank s and the bit inside it
-    (select-nth-set-bit). Only prefix sums, small scatters and gathers are used: no scatter over
-    all bits, no sort, and no running maximum (slow on XLA:CPU).
+    (select-nth-set-bit). Only parallel scans, one small scatter and gathers are used: no scatter
+    over all bits, no sort (``lax.cummax`` and ``jnp.cumsum`` are several times slower on XLA:CPU
+    than ``lax.associative_scan``).
     """
     n_words = words.shape[0]
     counts = lax.population_count(words).astype(jnp.int32)
     before = _cumsum(counts) - counts  # set bits in earlier words
     total = before[-1] + counts[-1]
-    full = counts > 0
-    ordinal = _cumsum(full.astype(jnp.int32)) - 1  # among the non-empty words
     wid = jnp.arange(n_words, dtype=jnp.int32)
-    nonempty = jnp.zeros((n_words,), jnp.int32).at[jnp.where(full, ordinal, n_words)].set(wid, mode="drop")
-    starts = jnp.zeros((slots,), jnp.int32).at[jnp.where(full, before, slots)].add(1, mode="drop")
-    word = nonempty[jnp.maximum(_cumsum(starts) - 1, 0)]  # the word holding rank s: (slots,)
+    # each non-empty word marks the slot of its first set bit; a running maximum carries it on
+    first = jnp.full((slots,), -1, jnp.int32).at[jnp.where(counts > 0, before, slots)].max(wid, mode="drop")
+    word = jnp.maximum(lax.associative_scan(jnp.maximum, first), 0)  # the word holding rank s: (slots,)
     rank = jnp.arange(slots, dtype=jnp.int32)
     bit = _select_bit(words[word], rank - before[word])
     return jnp.where(rank < total, word * _WORD + bit, -1), total
