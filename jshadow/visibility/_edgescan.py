@@ -23,24 +23,25 @@ a per-vertex integer ``⌈(x − x₀)/Δx⌉``, computed once per (vertex, view
 vertex agree on it and the count is exact at pixel centres (up to rounding when a centre lies
 on a projected edge). Facing is one sign per (face, view), so every face is counted consistently.
 
-Stages (each a separate ``jax.jit``; on XLA:CPU one fused jit recomputes gathers and is slower):
+Stages (each a separate ``jax.jit``: XLA:CPU fuses gathers into their consumers and recomputes
+them, so one fused jit is slower; notes/bsv-speed.md):
 
-1. views and project: bounding sphere, shell points, face planes; the (vertex, view) image
-   coordinates and start columns, and the (face, view) facing bits;
-2. compact: the (edge, view) candidates (silhouette and crossing at least one column), packed 32
-   per word; slot s finds the word holding the candidate of rank s (prefix of popcounts, a small
-   scatter and a running maximum, both as parallel scans) and the bit inside it
-   (select-nth-set-bit), so the ``S`` slots
-   (one list for all views) are filled without a scatter over all (edge, view) pairs;
-3. emit: per slot, up to ``K`` column crossings, each one scatter-add into the difference image;
-4. project onto SH: row prefix sum by one matmul (images stored column by column), ``count ≠ 0``,
-   ``coeffs = √(4π)·e0 − occ @ (w·Y)`` with exact per-pixel solid angles ``w`` (basis rows in
-   the same column-major pixel order, so nothing is transposed).
+1. views: bounding sphere, shell points and frames, face planes (small);
+2. project: the (vertex, view) image coordinates and start columns, the (face, view) facing bits;
+3. candidates: the (edge, view) pairs that are silhouette edges and cross at least one column;
+4. slots: the candidates packed 32 per word and compacted into one list of ``S`` slots for all
+   views (prefix of popcounts, a small scatter and a running maximum, both as parallel scans, and
+   select-nth-set-bit): no scatter over all (edge, view) pairs, no sort;
+5. gather: per slot, the column range, start point, slope and weight of its (edge, view);
+6. emit: every slot's first column crossing, plus the crossings 1 … K − 1 of the ``S2`` slots
+   spanning more than one column, as one scatter-add into the difference images;
+7. SH: row prefix sums as one matmul (images stored column by column), ``count ≠ 0``, and
+   ``coeffs = √(4π)·e0 − occ @ (w·Y)`` with exact per-pixel solid angles ``w`` (basis rows in the
+   same column-major pixel order, so nothing is transposed).
 
-``S`` ((edge, view) slots, all views), ``S2`` (those spanning more than one column) and ``K``
-(columns per edge) are static. When a pose needs more, the
-``overflow`` flag is set; :func:`bsv_mesh_edgescan` then recomputes with larger slots (concrete
-input) or raises at run time (traced input): the result is never silently wrong.
+``S``, ``S2`` and ``K`` are static. When a pose needs more, the ``overflow`` flag is set;
+:func:`bsv_mesh_edgescan` then recomputes with larger slots (concrete input) or raises at run time
+(traced input): the result is never silently wrong.
 
 Limitations: closed, edge-manifold, consistently wound meshes only (:func:`build_edge_table`
 checks this); ``shell > 1``; the output is binary visibility sampled on a grid and has no useful
