@@ -26,8 +26,10 @@ extent in float32, 2.2e-13 in float64), and hits closer than ε are ignored. Whe
 disagrees with an adjacent face (sharp features), rays grazing that face may still be blocked by
 it: that is the receiver's own geometry, counted as occlusion.
 
-Randomness: receiver i uses ``fold_in(fold_in(key, i), block)`` for its samples in blocks of
-``min(spp, 64)``, so the result depends on ``key`` and ``spp`` but not on ``chunk``.
+Randomness: receiver i uses ``fold_in(fold_in(key, i), block)`` for its samples in blocks of 64
+(jittered 8×8 strata per strategy by default), so the result depends on ``key`` and ``spp`` but not
+on ``chunk``. Mesh visibility is traced only for the rays that can contribute and whose segment
+meets the mesh's bounding ball (compacted on the host, power-of-two batches).
 """
 
 from __future__ import annotations
@@ -105,8 +107,30 @@ def _light_distance(o, d, center, radius):
     return jnp.where(disc >= 0, jnp.maximum(t, 0.0), jnp.inf)
 
 
+_SIDE = 8  # _BLOCK = _SIDE² strata of [0, 1)² per strategy
+_MIN_BLOCKS = 8  # stratified: estimate the error from the block means when there are this many
+
+
+def _stratify(keys, u):
+    """Jittered strata: in each block, strategy k's 2D numbers cover the _SIDE × _SIDE cells of the
+    unit square once each, in an order permuted independently per receiver and strategy (so the
+    strategies stay independent of each other). Every u stays uniform on its own: unbiased."""
+    n_pairs = u.shape[-1] // 2
+
+    def perms(k):
+        ks = jax.random.split(jax.random.fold_in(k, 0x5EED), n_pairs)
+        return jax.vmap(lambda kk: jax.random.permutation(kk, _BLOCK))(ks).T  # (B, pairs)
+
+    cell = jax.vmap(perms)(keys)  # (R, B, pairs)
+    cx = (cell % _SIDE).astype(u.dtype)
+    cy = (cell // _SIDE).astype(u.dtype)
+    uu = u[..., : 2 * n_pairs].reshape(*u.shape[:-1], n_pairs, 2)
+    out = jnp.stack([(cx + uu[..., 0]) / _SIDE, (cy + uu[..., 1]) / _SIDE], axis=-1)
+    return jnp.minimum(out, 1.0 - jnp.finfo(u.dtype).epsneg).reshape(u.shape)
+
+
 @eqx.filter_jit
-def _sample_block(geo: _Geometry, points, normals, ridx, key, block, heuristic_power):
+def _sample_block(geo: _Geometry, points, normals, ridx, key, block, heuristic_power, stratify):
     """One block of ``_BLOCK`` samples per receiver, every strategy: the rays (origins (R, 1, 3),
     directions (R, B, K, 3), t_max (R, B, K)), the contribution (R, B, K, 3) each ray adds to the
     estimate of E if it is unoccluded, and whether a sphere occluder already blocks it."""
@@ -118,6 +142,8 @@ def _sample_block(geo: _Geometry, points, normals, ridx, key, block, heuristic_p
     n_u = 2 * n_lights + (2 if use_env else 0) + (2 if use_mis else 0)
     keys = jax.vmap(lambda i: jax.random.fold_in(jax.random.fold_in(key, i), block))(ridx)
     u = jax.vmap(lambda k: jax.random.uniform(k, (_BLOCK, max(n_u, 1)), dtype))(keys)  # (R, B, n_u)
+    if stratify and n_u > 0:
+        u = _stratify(keys, u)
     p = points[:, None, :]
     n = normals[:, None, :]
     o = p + geo.offset * n  # (R, 1, 3)
@@ -233,6 +259,7 @@ def reference(
     progress: bool = False,
     *,
     heuristic: str = "power",
+    stratify: bool = True,
 ) -> ReferenceResult:
     """Monte Carlo irradiance and radiance at every receiver of ``scene`` at ``frame``.
 
@@ -245,10 +272,15 @@ def reference(
             aims at about 65k rays per call.
         progress: show a ``tqdm`` progress bar.
         heuristic: "power" (β = 2) or "balance", for the MIS of "hdr" environments.
+        stratify: jittered 8×8 strata per block of 64 samples and per strategy (default). The
+            standard error then comes from the spread of the (independent) block means when spp
+            is a multiple of 64 and at least 512; otherwise from the per-sample variance, which for
+            stratified samples is an upper bound in expectation (conservative).
+            ``stratify=False`` draws independent samples (per-sample variance, exact).
 
     Returns:
         :class:`ReferenceResult` with ``points``, ``normals``, ``irradiance``, ``radiance``
-        (albedo/π · E) and ``irradiance_stderr`` (√(sample variance / spp); 0 if spp = 1), (N, 3).
+        (albedo/π · E) and ``irradiance_stderr`` (see ``stratify``; 0 if spp = 1), all (N, 3).
 
     Limitations: not differentiable (binary visibility); cost is brute force, rays × triangles.
     Sphere lights do not occlude (see the module docstring).
@@ -257,6 +289,8 @@ def reference(
         raise ValueError(f"spp must be a positive integer, got {spp!r}")
     if chunk is not None and not (isinstance(chunk, int | np.integer) and chunk >= 1):
         raise ValueError(f"chunk must be a positive integer or None, got {chunk!r}")
+    if not isinstance(stratify, bool):
+        raise ValueError(f"stratify must be True or False, got {stratify!r}")
     if heuristic not in ("power", "balance"):
         raise ValueError(f"heuristic must be 'power' or 'balance', got {heuristic!r}")
     dtype = scene.dtype
@@ -312,6 +346,8 @@ def reference(
     power = 2.0 if heuristic == "power" else 1.0
     mean = np.zeros((n_recv, 3))
     m2 = np.zeros((n_recv, 3))
+    m2_blocks = np.zeros((n_recv, 3))
+    by_blocks = stratify and spp % _BLOCK == 0 and n_blocks >= _MIN_BLOCKS
     from tqdm.auto import tqdm
 
     bar = tqdm(total=n_chunks * n_blocks, disable=not progress, desc="reference", unit="call")
@@ -322,9 +358,11 @@ def reference(
         m_acc = np.zeros((chunk, 3))
         s_acc = np.zeros((chunk, 3))
         n_acc = 0.0
+        bmean = np.zeros((chunk, 3))  # Welford over the block means (stratified error estimate)
+        bm2_acc = np.zeros((chunk, 3))
         for b in range(n_blocks):
             o, dirs, tmax, contrib, blocked = _sample_block(
-                geo, pts, nrm, ridx, key, jnp.asarray(b, jnp.int32), power
+                geo, pts, nrm, ridx, key, jnp.asarray(b, jnp.int32), power, stratify
             )
             if dirs.shape[2] == 0:
                 value = np.zeros((chunk, _BLOCK, 3))
@@ -341,13 +379,20 @@ def reference(
             m_acc = m_acc + delta * (bn / tot)
             s_acc = s_acc + bm2 + delta**2 * (n_acc * bn / tot)
             n_acc = tot
+            step = bm - bmean
+            bmean = bmean + step / (b + 1)
+            bm2_acc = bm2_acc + step * (bm - bmean)
             bar.update(1)
         k = min(chunk, n_recv - lo)
         mean[lo : lo + k] = m_acc[:k]
         m2[lo : lo + k] = s_acc[:k]
+        m2_blocks[lo : lo + k] = bm2_acc[:k]
     bar.close()
-    var = m2 / (spp - 1) if spp > 1 else np.zeros_like(m2)
-    stderr = np.sqrt(np.maximum(var, 0.0) / spp)
+    if by_blocks:  # stratified, whole blocks: the block means are i.i.d.
+        stderr = np.sqrt(np.maximum(m2_blocks, 0.0) / (n_blocks - 1) / n_blocks)
+    else:  # i.i.d. samples (exact), or stratified samples (conservative)
+        var = m2 / (spp - 1) if spp > 1 else np.zeros_like(m2)
+        stderr = np.sqrt(np.maximum(var, 0.0) / spp)
     irradiance = jnp.asarray(mean, dtype)
     albedo = jnp.asarray(scene.receivers.albedo, dtype)
     return ReferenceResult(
