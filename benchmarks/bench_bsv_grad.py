@@ -30,7 +30,7 @@ import numpy as np
 
 from jshadow.geometry import load_mesh
 from jshadow.visibility._bsv import bsv_mesh
-from jshadow.visibility._bsv_grad import bsv_mesh_diff, bsv_silhouette_counts
+from jshadow.visibility._bsv_grad import _sample_points, bsv_mesh_diff, bsv_silhouette_counts
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 GRID, DIRECTIONS, N_BANDS = (12, 20), (32, 32), 4
@@ -89,6 +89,62 @@ def bench_mesh(name, nodes_list, runs, shell):
     return row
 
 
+def accuracy(name, nodes_list, shells, views=4):
+    """Relative error of the float64 tangent against the closed form of a rotation about p.
+
+    Uses the converged reference of tests/test_bsv_grad.py (exact piecewise integration of the
+    occluded region); needs only S, no finite differences (notes/visibility-gradients.md §2 (ii)).
+    """
+    import sys
+
+    sys.path.insert(0, str(ROOT / "tests"))
+    from test_bsv_grad import _rotation_generator, _visibility_ref
+
+    from jshadow.visibility._bsv_grad import bsv_sh_tangent
+    from jshadow.visibility._silhouette import silhouette_edges_table
+
+    rows = []
+    with jax.enable_x64(True):
+        mesh = load_mesh(_asset(name), dtype=jnp.float64)
+        x, f = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+        table = silhouette_edges_table(f)
+        rng = np.random.default_rng(1)
+        for shell in shells:
+            pts, frames = _sample_points(jnp.asarray(x), GRID, shell)
+            pick = rng.choice(pts.shape[0], views, replace=False)
+            for i in pick:
+                p, fr = np.asarray(pts[i]), np.asarray(frames[i])
+                axis = rng.normal(size=3)
+                axis /= np.linalg.norm(axis)
+                expected = _rotation_generator(fr.T @ axis) @ _visibility_ref(x, f, p, fr)
+                for nodes in nodes_list:
+                    g, count = bsv_sh_tangent(
+                        x,
+                        f,
+                        table,
+                        p[None],
+                        fr[None],
+                        N_BANDS,
+                        400,
+                        nodes,
+                        np.cross(axis, x - p),
+                        np.zeros((1, 3)),
+                    )
+                    g = np.asarray(g[0])
+                    rel = float(np.linalg.norm(g - expected) / np.linalg.norm(expected))
+                    cos = float(g @ expected / (np.linalg.norm(g) * np.linalg.norm(expected)))
+                    rows.append({"shell": shell, "view": int(i), "nodes": nodes, "rel": rel, "cos": cos})
+    for shell in shells:
+        for nodes in nodes_list:
+            r = [row for row in rows if row["shell"] == shell and row["nodes"] == nodes]
+            rel = [row["rel"] for row in r]
+            print(
+                f"accuracy {name} shell={shell} nodes={nodes}: rel. err median {np.median(rel):.1e} "
+                f"max {np.max(rel):.1e}, cos min {min(row['cos'] for row in r):.5f} ({len(r)} views)"
+            )
+    return rows
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--mesh", nargs="+", default=["bunny_small"])
@@ -96,7 +152,10 @@ def main():
     ap.add_argument("--runs", type=int, default=5)
     ap.add_argument("--shell", type=float, default=1.0)
     ap.add_argument("--json", type=pathlib.Path, default=None)
+    ap.add_argument("--accuracy", action="store_true", help="also the rotation closed-form error (float64)")
     args = ap.parse_args()
+    if args.accuracy:
+        acc = {m: accuracy(m, args.nodes, [1.0, 1.5]) for m in args.mesh}
     rows = [bench_mesh(m, args.nodes, args.runs, args.shell) for m in args.mesh]
     meta = {
         "device": str(jax.devices()[0]),
@@ -123,7 +182,8 @@ def main():
                 f"{r['backward_over_forward']:.2f}, total/forward {r['total_over_forward']:.2f}"
             )
     if args.json:
-        args.json.write_text(json.dumps({"meta": meta, "rows": rows}, indent=1))
+        out = {"meta": meta, "rows": rows, "accuracy": acc if args.accuracy else None}
+        args.json.write_text(json.dumps(out, indent=1))
 
 
 if __name__ == "__main__":
