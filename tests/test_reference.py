@@ -268,3 +268,40 @@ def test_input_validation():
         reference(sc, 4, jax.random.PRNGKey(0), heuristic="max")
     with pytest.raises(ValueError, match="frame"):
         reference(sc, 4, jax.random.PRNGKey(0), frame=3)
+
+
+@pytest.mark.usefixtures("x64")
+def test_sphere_light_shadowed_by_sphere(rng):
+    """Umbra: exactly zero light. Penumbra: against an independent numpy estimate (uniform cone
+    sampling of the light, analytic ray–sphere test)."""
+    lc, lr, oc, orad = np.array([0.0, 3.0, 0.0]), 0.5, np.array([0.0, 1.5, 0.0]), 0.4
+    pts = np.array([[0.0, 0.0, 0.0], [0.35, 0.0, 0.0], [0.5, 0.0, 0.2], [0.75, 0.0, -0.1]])
+    rec = Receivers(jnp.asarray(pts), jnp.asarray(np.tile([0.0, 1.0, 0.0], (4, 1))), jnp.ones(3), None)
+    light = SphereLight(jnp.asarray(lc), jnp.asarray(lr), jnp.asarray([1.0, 1.0, 1.0]))
+    sc = f64(receivers=rec, lights=(light,), occluders=(SphereOccluder(jnp.asarray(oc), jnp.asarray(orad)),))
+    res = reference(sc, 4096, jax.random.PRNGKey(9))
+    got, se = np.asarray(res.irradiance)[:, 0], np.asarray(res.irradiance_stderr)[:, 0]
+    assert got[0] == 0.0 and se[0] == 0.0  # centre of the umbra
+    m = 400_000
+    want, want_se = [], []
+    for p in pts:
+        c = lc - p
+        dist = np.linalg.norm(c)
+        axis = c / dist
+        omc = 1 - np.sqrt(1 - (lr / dist) ** 2)
+        ct = 1 - rng.random(m) * omc
+        st = np.sqrt(1 - ct * ct)
+        ph = 2 * np.pi * rng.random(m)
+        t1 = np.cross(axis, [1.0, 0.0, 0.0])
+        t1 /= np.linalg.norm(t1)
+        t2 = np.cross(axis, t1)
+        d = ct[:, None] * axis + (st * np.cos(ph))[:, None] * t1 + (st * np.sin(ph))[:, None] * t2
+        b = d @ (oc - p)
+        blocked = (b > 0) & (b * b - (np.sum((oc - p) ** 2) - orad**2) >= 0)
+        f = np.where(blocked, 0.0, np.maximum(d[:, 1], 0.0)) * 2 * np.pi * omc
+        want.append(f.mean())
+        want_se.append(f.std() / np.sqrt(m))
+    want, want_se = np.array(want), np.array(want_se)
+    assert np.all(want[1:] > 0.002) and np.all(want[1:] < 0.9 * np.pi * (lr / 3.0) ** 2)  # penumbrae
+    z = (got - want) / np.sqrt(se**2 + want_se**2 + 1e-300)
+    assert np.max(np.abs(z[1:])) < z_threshold(3)
