@@ -149,7 +149,7 @@ def write_md(path, rows, m, repeats, load0, load1, var):
         f"- {m} samples per call, one configuration (normal, light) per sample, float32, jit; median of "
         f"{repeats} warm runs with `block_until_ready`; compile (`lower().compile()`) separately.",
         "- Projected caps: full algorithm of Peters & Dachsbacher 2019 (all cases in one branch-free kernel, "
-        "R⁻¹ by a quintic fit + 2 Newton steps, world transform). Cone: uniform in solid angle.",
+        "R⁻¹ by a quintic fit + 1 Newton step in float32, world transform). Cone: uniform in solid angle.",
         "",
         "| configurations | share clipped-below | caps (ms) | cone (ms) | caps (M samples/s) "
         "| cone (M samples/s) | caps / cone time | compile caps / cone (s) |",
