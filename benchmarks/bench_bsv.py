@@ -201,7 +201,7 @@ def _table(rows):
         "| mesh (F) | dirs | edge-scan median / best (ms) | compile + 1st (s) | brute median (ms) | "
         "brute compile + 1st (s) | Embree trace (ms) | Embree full (ms) | edge-scan / Embree trace | "
         "brute / Embree trace | mismatches vs Embree: edge-scan, brute (of rays) | "
-        "slots (S, S2, K), rest pose |"
+        "slots (S, S2, S3, K), rest pose |"
     )
     lines = [head, "|" + "---|" * 12]
     for r in rows:

@@ -178,9 +178,9 @@ def test_overflow_is_repaired_and_traced_overflow_raises(bunny_small):
     table = build_edge_table(f)
     slots = edgescan_slots(v, f, GRID, (16, 16), SHELL, edge_table=table)
     good = bsv_mesh_edgescan(v, f, 2, GRID, (16, 16), SHELL, edge_table=table, slots=slots).coeffs
-    tiny = bsv_mesh_edgescan(v, f, 2, GRID, (16, 16), SHELL, edge_table=table, slots=(1, 1, 1)).coeffs
+    tiny = bsv_mesh_edgescan(v, f, 2, GRID, (16, 16), SHELL, edge_table=table, slots=(1, 1, 1, 1)).coeffs
     np.testing.assert_array_equal(np.asarray(tiny), np.asarray(good))
-    occ, overflow = edgescan_occlusion(v, f, GRID, (16, 16), SHELL, edge_table=table, slots=(1, 1, 1))
+    occ, overflow = edgescan_occlusion(v, f, GRID, (16, 16), SHELL, edge_table=table, slots=(1, 1, 1, 1))
     assert not bool(overflow)
 
     def coeffs(verts, slots):
@@ -189,7 +189,7 @@ def test_overflow_is_repaired_and_traced_overflow_raises(bunny_small):
     traced = jax.jit(lambda x: coeffs(x, slots))(v)
     np.testing.assert_allclose(np.asarray(traced), np.asarray(good), atol=eps(jnp.float32))
     with pytest.raises(Exception, match="overflowed"):
-        jax.block_until_ready(jax.jit(lambda x: coeffs(x, (32, 1, 1)))(v))
+        jax.block_until_ready(jax.jit(lambda x: coeffs(x, (32, 1, 1, 1)))(v))
     default = jax.jit(lambda x: coeffs(x, None))(v)  # traced without slots: generous defaults
     np.testing.assert_allclose(np.asarray(default), np.asarray(good), atol=eps(jnp.float32))
 

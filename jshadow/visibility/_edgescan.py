@@ -33,13 +33,14 @@ them, so one fused jit is slower; notes/bsv-speed.md):
    views (prefix of popcounts, a small scatter and a running maximum, both as parallel scans, and
    select-nth-set-bit): no scatter over all (edge, view) pairs, no sort;
 5. gather: per slot, the column range, start point, slope and weight of its (edge, view);
-6. emit: every slot's first column crossing, plus the crossings 1 … K − 1 of the ``S2`` slots
-   spanning more than one column, as one scatter-add into the difference images;
+6. emit: every slot's first column crossing, the second one of the ``S2`` slots spanning more
+   than one column, and the crossings 2 … K − 1 of the ``S3`` slots spanning more than two, as
+   one scatter-add into the difference images;
 7. SH: row prefix sums as one matmul (images stored column by column), ``count ≠ 0``, and
    ``coeffs = √(4π)·e0 − occ @ (w·Y)`` with exact per-pixel solid angles ``w`` (basis rows in the
    same column-major pixel order, so nothing is transposed).
 
-``S``, ``S2`` and ``K`` are static. When a pose needs more, the ``overflow`` flag is set;
+``S``, ``S2``, ``S3`` and ``K`` are static. When a pose needs more, the ``overflow`` flag is set;
 :func:`bsv_mesh_edgescan` then recomputes with larger slots (concrete input) or raises at run time
 (traced input): the result is never silently wrong.
 
@@ -345,35 +346,41 @@ def _stage_gather(slot, px, py, col, front, a, b, t1, *, directions):
 
 @partial(jax.jit, static_argnames=("views", "directions", "shell", "long_slots", "span"))
 def _stage_emit(params, most, *, views, directions, shell, long_slots, span):
-    """Scatter-add of every column crossing into the difference image (G, N_y + 1, N_x)."""
+    """Scatter-add of every column crossing into the difference images (G, N_x, N_y + 1)."""
     ny, nx = directions
     tan_a = 1.0 / math.sqrt(shell * shell - 1.0)
     dx, dy = 2.0 * tan_a / nx, 2.0 * tan_a / ny
+    s2, s3 = long_slots
     lo, hi, xa, ya, slope, base, sgn = params
     dtype = xa.dtype
     n_slots = lo.shape[0]
     size = views * (ny + 1) * nx
 
-    def crossing(k, lo, hi, xa, ya, slope, base):
+    def crossing(k, lo, hi, xa, ya, slope, base, *_):
         j = lo + k
         xj = (j.astype(dtype) + 0.5) * dx - tan_a
         y = ya + (xj - xa) * slope
         row = jnp.clip(jnp.floor((y + tan_a) / dy - 0.5) + 1.0, 0, ny).astype(jnp.int32)  # rows y_i ≤ y
         return jnp.where(j < hi, base + j * (ny + 1) + row, size)
 
-    # every slot emits its first crossing; the few edges spanning more columns are gathered into
-    # one global list of ``long_slots`` entries that emit the crossings 1 … span − 1
-    idx = [crossing(0, lo, hi, xa, ya, slope, base)]
-    val = [sgn]
-    pos, n_long = _compact(_pack(hi - lo > 1), long_slots)
-    lo2, hi2, xa2, ya2, slope2, base2, sgn2 = [x[jnp.maximum(pos, 0)] for x in params]
-    hi2 = jnp.where(pos >= 0, hi2, lo2)
-    for k in range(1, span):
-        idx.append(crossing(k, lo2, hi2, xa2, ya2, slope2, base2))
-        val.append(sgn2)
+    def longer(params, than, n):
+        """The entries of ``params`` spanning more than ``than`` columns, compacted into n slots."""
+        lo, hi = params[0], params[1]
+        pos, count = _compact(_pack(hi - lo > than), n)
+        out = [x[jnp.maximum(pos, 0)] for x in params]
+        out[1] = jnp.where(pos >= 0, out[1], out[0])  # empty slots span nothing
+        return out, count
+
+    # every slot emits its first crossing; the slots spanning more columns are compacted into
+    # S2 slots that emit the second crossing, and those spanning more than two into S3 slots that
+    # emit the crossings 2 … K − 1
+    params2, n2 = longer(params, 1, s2)
+    params3, n3 = longer(params2, 2, s3)
+    idx = [crossing(0, *params), crossing(1, *params2)] + [crossing(k, *params3) for k in range(2, span)]
+    val = [sgn, params2[6]] + [params3[6]] * max(span - 2, 0)
     diff = jnp.zeros((size,), dtype).at[jnp.concatenate(idx)].add(jnp.concatenate(val), mode="drop")
-    counts = jnp.stack([most, n_long, jnp.max(hi - lo)])  # needed vs static (S, S2, K)
-    overflow = jnp.any(counts > jnp.asarray([n_slots, long_slots, span], jnp.int32))
+    counts = jnp.stack([most, n2, n3, jnp.max(hi - lo)])  # needed vs static (S, S2, S3, K)
+    overflow = jnp.any(counts > jnp.asarray([n_slots, s2, s3, span], jnp.int32))
     return diff.reshape(views, nx, ny + 1), overflow, counts
 
 
@@ -428,14 +435,14 @@ def _round_up(x, m):
 
 
 def _run(vertices, faces, table, grid, directions, shell, slots):
-    s, s2, k = slots
+    s, s2, s3, k = slots
     center, radius, comps, offset = _stage_views(vertices, faces, grid=grid, shell=shell)
     px, py, col, front = _stage_project(comps, offset, directions=directions, shell=shell)
     cand = _stage_candidates(front, col, table.a, table.b, table.t1, table.t2)
     slot, most = _stage_slots(cand, slots=s)
     params = _stage_gather(slot, px, py, col, front, table.a, table.b, table.t1, directions=directions)
     diff, overflow, counts = _stage_emit(
-        params, most, views=grid[0] * grid[1], directions=directions, shell=shell, long_slots=s2, span=k
+        params, most, views=grid[0] * grid[1], directions=directions, shell=shell, long_slots=(s2, s3), span=k
     )
     return diff, overflow, counts, center, radius
 
@@ -449,13 +456,13 @@ def edgescan_slots(
     *,
     margin: float = 1.5,
     edge_table: EdgeTable | None = None,
-) -> tuple[int, int, int]:
-    """Static slot sizes ``(S, S2, K)`` measured on a pose (e.g. the rest pose), times ``margin``.
+) -> tuple[int, int, int, int]:
+    """Static slot sizes ``(S, S2, S3, K)`` measured on a pose (e.g. the rest pose), times ``margin``.
 
-    ``S``: (silhouette edge, view) pairs crossing at least one pixel column, over all views,
-    rounded up to a multiple of 32. ``S2``: (edge, view) pairs crossing more than one column, over
-    all views. ``K``: columns crossed by one edge (maximum), at most the image width. Needs concrete
-    vertices.
+    ``S``: (silhouette edge, view) pairs crossing at least one pixel column, over all views;
+    ``S2``: those crossing more than one column; ``S3``: more than two (S and S2 rounded up to a
+    multiple of 32). ``K``: columns crossed by one edge (maximum), at most the image width. Needs
+    concrete vertices.
     """
     grid = _check_pair(grid, "grid")
     directions = _check_pair(directions, "directions")
@@ -471,20 +478,25 @@ def edgescan_slots(
     span = np.abs(col[a] - col[b]) * (front[t1] != front[t2])  # (E_pad, G)
     e_pad = int(a.shape[0])
     s = min(_round_up(max(1, math.ceil(int(np.sum(span > 0)) * margin)), _WORD), e_pad * span.shape[1])
-    s2 = max(1, math.ceil(int(np.sum(span > 1)) * margin))
+    s2 = _round_up(max(1, math.ceil(int(np.sum(span > 1)) * margin)), _WORD)
+    s3 = max(1, math.ceil(int(np.sum(span > 2)) * margin))
     k = min(max(1, math.ceil(int(np.max(span)) * margin)), directions[1])
-    return s, s2, k
+    return s, s2, s3, k
 
 
 def _check_slots(slots, cap, width):
     if not (
         isinstance(slots, tuple | list)
-        and len(slots) == 3
+        and len(slots) == 4
         and all(isinstance(x, int | np.integer) and not isinstance(x, bool) and x >= 1 for x in slots)
     ):
-        raise ValueError(f"slots must be three positive ints (S, S2, K) (see edgescan_slots), got {slots!r}")
-    s, s2, k = (int(x) for x in slots)
-    return min(_round_up(s, _WORD), cap), s2, min(k, width)
+        raise ValueError(
+            f"slots must be four positive ints (S, S2, S3, K) (see edgescan_slots), got {slots!r}"
+        )
+    s, s2, s3, k = (int(x) for x in slots)
+    s = min(_round_up(s, _WORD), cap)
+    s2 = min(_round_up(s2, _WORD), s)
+    return s, s2, min(s3, s2), min(max(k, 1), width)
 
 
 def _traced_default_slots(num_faces, grid, directions):
@@ -496,7 +508,7 @@ def _traced_default_slots(num_faces, grid, directions):
     """
     views = grid[0] * grid[1]
     s = math.ceil(8.0 * math.sqrt(num_faces) * max(directions[1], 8) / 32.0) * views
-    return s, max(1, s // 2), max(2, directions[1] // 2)
+    return s, max(1, s // 2), max(1, s // 4), max(2, directions[1] // 2)
 
 
 def _resolve(vertices, faces, grid, directions, shell, edge_table, slots):
@@ -517,14 +529,14 @@ def _compute(vertices, faces, table, grid, directions, shell, slots):
     """Difference images, retrying with larger slots on overflow (concrete) or flagging it (traced)."""
     cap, width = int(table.a.shape[0]) * grid[0] * grid[1], directions[1]
     while True:
-        s, s2, k = slots
+        s, s2, s3, k = slots
         diff, overflow, counts, center, radius = _run(vertices, faces, table, grid, directions, shell, slots)
         if isinstance(overflow, jax.core.Tracer) or not bool(overflow):
             return diff, overflow, center, radius
-        most, n_long, longest = (int(x) for x in np.asarray(counts))
+        need = [int(x) for x in np.asarray(counts)]
         # the counts are exact for the slotted edges, so one retry suffices unless S itself overflowed
         # (then the long-edge count is a lower bound and a second retry may follow)
-        grow = [max(x, math.ceil(1.25 * y)) for x, y in ((s, most), (s2, n_long), (k, longest))]
+        grow = [max(x, math.ceil(1.25 * y)) for x, y in zip((s, s2, s3, k), need, strict=True)]
         bigger = tuple(grow)
         slots = _check_slots(bigger, cap, width)
 
@@ -537,7 +549,7 @@ def edgescan_occlusion(
     shell: float = 1.5,
     *,
     edge_table: EdgeTable | None = None,
-    slots: tuple[int, int, int] | None = None,
+    slots: tuple[int, int, int, int] | None = None,
 ) -> tuple[Bool[Array, "T P Ny Nx"], Bool[Array, ""]]:
     """Occlusion images (T, P, N_y, N_x) of the gnomonic cone rays, and the ``overflow`` flag.
 
@@ -564,7 +576,7 @@ def bsv_mesh_edgescan(
     shell: float = 1.5,
     *,
     edge_table: EdgeTable | None = None,
-    slots: tuple[int, int, int] | None = None,
+    slots: tuple[int, int, int, int] | None = None,
 ) -> BSV:
     """BSV of a closed mesh by the silhouette-edge scanline on a gnomonic cone image.
 
@@ -577,7 +589,7 @@ def bsv_mesh_edgescan(
         shell: R / r > 1.
         edge_table: :func:`build_edge_table` of ``faces`` (built here if None; build it once per
             topology to save the host work).
-        slots: static ``(S, S2, K)`` from :func:`edgescan_slots` on the rest pose (if None:
+        slots: static ``(S, S2, S3, K)`` from :func:`edgescan_slots` on the rest pose (if None:
             measured on ``vertices`` when they are concrete, generous defaults from the face count
             when they are traced; pass them for speed under ``jit``).
 
@@ -597,7 +609,7 @@ def bsv_mesh_edgescan(
     )
     diff, overflow, center, radius = _compute(vertices, faces, table, grid, directions, shell, slots)
     if isinstance(overflow, jax.core.Tracer):
-        diff = eqx.error_if(diff, overflow, "edge-scan slots overflowed: pass larger slots=(S, S2, K)")
+        diff = eqx.error_if(diff, overflow, "edge-scan slots overflowed: pass larger slots=(S, S2, S3, K)")
     basis_w = _basis_weights(directions, shell, int(n), vertices.dtype)
     coeffs = _stage_sh(diff, basis_w, n=int(n)).reshape(*grid, n * n)
     return BSV(coeffs, center, radius, shell * radius)
