@@ -27,7 +27,7 @@ from jshadow.sh._grids import _np_sh_basis
 from jshadow.visibility._bsv import bsv_sample_points
 from jshadow.visibility._bsv_grad import bsv_mesh_diff, bsv_sh_tangent, bsv_silhouette_counts
 from jshadow.visibility._frames import bsv_frames
-from jshadow.visibility._silhouette import silhouette_edges_table, silhouette_samples
+from jshadow.visibility._silhouette import EdgeTable, silhouette_edges_table, silhouette_samples
 
 pytestmark = pytest.mark.usefixtures("x64")
 
@@ -281,10 +281,13 @@ def test_icosphere_against_analytic_cap(rng):
 
 
 @pytest.mark.parametrize(
-    ("mesh", "nodes", "tol", "cos_min"), [("ico", 8, 1e-7, 1 - 1e-12), ("torus", 32, 1e-2, 0.9999)]
+    ("mesh", "nodes", "tol", "cos_min"),
+    [("ico", 8, 1e-7, 1 - 1e-12), ("torus", 32, 1e-2, 0.9999), ("open torus", 32, 1e-2, 0.9999)],
 )
 def test_directional_derivative_vs_converged_differences(rng, mesh, nodes, tol, cos_min):
     x, f = _ico(1) if mesh == "ico" else _torus()
+    if mesh == "open torus":
+        f = f[16:]  # one ring of the tube removed: boundary edges are always silhouette edges
     radius = np.linalg.norm(x, axis=1).max()
     h = 1e-5
     for theta, phi, dist in [(1.1, 0.7, 1.1), (2.3, 5.0, 1.5)]:
@@ -422,6 +425,12 @@ def test_slot_overflow_is_reported_and_slots_suffice(rng):
     assert count_small == count > count // 2
     np.testing.assert_allclose(exact_k, full, rtol=1e-13, atol=1e-15)
     assert _rel(small, full) > 1e-3
+    # closed meshes test only front faces; the all-faces path (open meshes) must agree exactly
+    table = silhouette_edges_table(f)
+    assert table.closed and not silhouette_edges_table(f[:-3]).closed
+    as_open = EdgeTable(table.edges, table.faces, closed=False)
+    g_open, _ = bsv_sh_tangent(x, f, as_open, p[None], frame[None], N_BANDS, count, 8, dx, np.zeros((1, 3)))
+    np.testing.assert_array_equal(np.asarray(g_open[0]), exact_k)
 
 
 def test_samples_orientation_points_out_of_occlusion():

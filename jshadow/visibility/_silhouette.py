@@ -55,10 +55,13 @@ class EdgeTable(eqx.Module):
         faces: (E, 2) int32 face ids (f0, f1): the edge reads i→j in f0 and j→i in f1. On a boundary
             edge one of them is −1; then ``f0`` is always the existing face and the edge is stored
             in the direction that face reads it.
+        closed: (static) no boundary edges. Then a ray from an outside viewpoint can only meet the
+            mesh by entering through a front-facing face, and the visibility test skips back faces.
     """
 
     edges: Int[Array, "E 2"]
     faces: Int[Array, "E 2"]
+    closed: bool = eqx.field(static=True, default=False)
 
     @property
     def num_edges(self) -> int:
@@ -114,6 +117,7 @@ def silhouette_edges_table(faces: Int[ArrayLike, "F 3"]) -> EdgeTable:
     return EdgeTable(
         edges=jnp.asarray(edges, jnp.int32),
         faces=jnp.asarray(np.stack([f0, f1], axis=1), jnp.int32),
+        closed=bool(np.all(f1 >= 0)),
     )
 
 
@@ -149,29 +153,38 @@ def _face_cones(rel: Float[Array, "F 3 3"]) -> Float[Array, "F 3 3"]:
 
 
 def _any_hit_masked(
-    dirs: Float[Array, "R 3"], cones: Float[Array, "F 3 3"], skip0: Int[Array, " R"], skip1: Int[Array, " R"]
+    dirs: Float[Array, "R 3"],
+    cones: Float[Array, "F 3 3"],
+    fids: Int[Array, " F"],
+    n_active: Int[Array, ""],
+    skip0: Int[Array, " R"],
+    skip1: Int[Array, " R"],
 ) -> Bool[Array, " R"]:
-    """Whether each ray from the cones' common origin along ``dirs`` enters any face other than
-    ``skip0``/``skip1``. Written as explicit multiply-adds so that XLA fuses the dot products, the
-    sign tests and the reduction over faces into one loop (no (R, F) array is stored)."""
+    """Whether each ray from the cones' common origin along ``dirs`` enters any of the first
+    ``n_active`` faces other than those with ids ``skip0``/``skip1`` (``fids`` are the faces' ids).
+
+    Written as explicit multiply-adds over chunks of faces, each chunk one vectorised pass over the
+    rays, so XLA fuses the dot products, the sign tests and the OR (no rays × faces array is stored);
+    the loop stops after the chunk holding face ``n_active − 1`` (primal only, not differentiable).
+    """
     n_f = cones.shape[0]
     n_chunks = -(-n_f // _FACE_CHUNK)
     pad = n_chunks * _FACE_CHUNK - n_f  # padding faces have zero normals: never hit
     cones = jnp.concatenate([cones, jnp.zeros((pad, 3, 3), cones.dtype)]).reshape(n_chunks, _FACE_CHUNK, 3, 3)
-    fids = jnp.arange(n_chunks * _FACE_CHUNK, dtype=jnp.int32).reshape(n_chunks, _FACE_CHUNK)
+    fids = jnp.concatenate([fids, jnp.full((pad,), -2, jnp.int32)]).reshape(n_chunks, _FACE_CHUNK)
     ox, oy, oz = dirs[:, 0], dirs[:, 1], dirs[:, 2]
 
-    def body(hit, xs):
-        c_chunk, f_chunk = xs
-        for c in range(_FACE_CHUNK):  # unrolled: each face is one vectorised pass over the rays
+    def body(i, hit):
+        c_chunk, f_chunk = cones[i], fids[i]
+        for c in range(_FACE_CHUNK):
             s = [ox * c_chunk[c, k, 0] + oy * c_chunk[c, k, 1] + oz * c_chunk[c, k, 2] for k in range(3)]
             lo = jnp.minimum(jnp.minimum(s[0], s[1]), s[2])
             hi = jnp.maximum(jnp.maximum(s[0], s[1]), s[2])
             hit = hit | ((lo >= 0) & (hi > 0) & (skip0 != f_chunk[c]) & (skip1 != f_chunk[c]))
-        return hit, None
+        return hit
 
-    hit, _ = lax.scan(body, jnp.zeros(dirs.shape[0], bool), (cones, fids))
-    return hit
+    n_used = (n_active + _FACE_CHUNK - 1) // _FACE_CHUNK
+    return lax.fori_loop(0, n_used, body, jnp.zeros(dirs.shape[0], bool))
 
 
 def silhouette_samples(
@@ -244,7 +257,14 @@ def silhouette_samples(
     # masked whole-line visibility: ray from p along ω to infinity, ignoring the edge's two faces
     skip0 = jnp.broadcast_to(f0[idx][:, None], (slots, nodes)).reshape(-1)
     skip1 = jnp.broadcast_to(f1[idx][:, None], (slots, nodes)).reshape(-1)
-    hit = _any_hit_masked(omega.reshape(-1, 3), _face_cones(rel), skip0, skip1).reshape(slots, nodes)
+    cones = _face_cones(rel)
+    n_faces = faces.shape[0]
+    if table.closed:  # only front faces can be entered from outside: test them first, stop there
+        order = jnp.argsort(~front, stable=True).astype(jnp.int32)
+        cones, fids, n_active = cones[order], order, jnp.sum(front, dtype=jnp.int32)
+    else:
+        fids, n_active = jnp.arange(n_faces, dtype=jnp.int32), jnp.asarray(n_faces, jnp.int32)
+    hit = _any_hit_masked(omega.reshape(-1, 3), cones, fids, n_active, skip0, skip1).reshape(slots, nodes)
     chi = (~hit & ok[:, None]).astype(dtype)
     q = chi * safe_div(w_psi, r * m_len[:, None])
     return SilhouetteSamples(a=a_id, b=b_id, m=m, s=s, omega=omega, q=q, count=count)
