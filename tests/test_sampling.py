@@ -437,3 +437,32 @@ def test_environment_sampler_against_pdf():
     np.testing.assert_allclose(lum_est, np.sum(luma * omega[:, None]), rtol=1e-9)
     direct = sample_environment(sam, jnp.asarray([[0.0, 0.0], [1 - 1e-12, 1 - 1e-12]]))
     assert np.all(np.asarray(direct.valid))
+
+
+@pytest.mark.usefixtures("x64")
+@pytest.mark.parametrize("dist,elev,case", CASES[:3])
+def test_projected_solid_angle_gradient(dist, elev, case):
+    """dΩ⊥/d(light centre) against central differences, in every non-empty case."""
+    n, c, r = config(dist, elev, seed=3)
+    f = lambda cc: projected_solid_angle(n, cc, r)  # noqa: E731
+    g = np.asarray(jax.grad(f)(jnp.asarray(c)))
+    h = 1e-6
+    fd = np.array([(float(f(c + h * e)) - float(f(c - h * e))) / (2 * h) for e in np.eye(3)])
+    np.testing.assert_allclose(g, fd, rtol=1e-5, atol=1e-9)
+
+
+@pytest.mark.usefixtures("x64")
+def test_gradients_finite_at_singular_points():
+    """Light straight overhead (degenerate tangent frame), centre on the horizon, receiver inside
+    the light, cap below the horizon: finite gradients of Ω⊥, of the sampled density and of pdf."""
+    n = jnp.asarray([0.0, 0.0, 1.0])
+    u = jnp.asarray([0.3, 0.6])
+    for c in ([0.0, 0.0, 3.0], [3.0, 0.0, 0.0], [0.1, 0.0, 0.2], [0.0, 0.0, -3.0]):
+        c = jnp.asarray(c)
+        for fn in (
+            lambda cc: projected_solid_angle(n, cc, 1.0),
+            lambda cc: sample_projected_cap(u, n, cc, 1.0).pdf_proj,
+            lambda cc: projected_cap_pdf(jnp.asarray([0.6, 0.0, 0.8]), n, cc, 1.0),
+        ):
+            g = np.asarray(jax.grad(fn)(c))
+            assert np.all(np.isfinite(g)), (c, g)
