@@ -460,9 +460,9 @@ def edgescan_slots(
     """Static slot sizes ``(S, S2, S3, K)`` measured on a pose (e.g. the rest pose), times ``margin``.
 
     ``S``: (silhouette edge, view) pairs crossing at least one pixel column, over all views;
-    ``S2``: those crossing more than one column; ``S3``: more than two (S and S2 rounded up to a
-    multiple of 32). ``K``: columns crossed by one edge (maximum), at most the image width. Needs
-    concrete vertices.
+    ``S2``: those crossing more than one column; ``S3``: more than two; ``K``: columns crossed by
+    one edge (maximum), at most the image width. S2, S3 and K also get a small additive slack
+    (256, 64, 1); S and S2 are rounded up to a multiple of 32. Needs concrete vertices.
     """
     grid = _check_pair(grid, "grid")
     directions = _check_pair(directions, "directions")
@@ -478,9 +478,10 @@ def edgescan_slots(
     span = np.abs(col[a] - col[b]) * (front[t1] != front[t2])  # (E_pad, G)
     e_pad = int(a.shape[0])
     s = min(_round_up(max(1, math.ceil(int(np.sum(span > 0)) * margin)), _WORD), e_pad * span.shape[1])
-    s2 = _round_up(max(1, math.ceil(int(np.sum(span > 1)) * margin)), _WORD)
-    s3 = max(1, math.ceil(int(np.sum(span > 2)) * margin))
-    k = min(max(1, math.ceil(int(np.max(span)) * margin)), directions[1])
+    # S2, S3 and K are small: an additive slack on top of the margin costs next to nothing
+    s2 = _round_up(math.ceil(int(np.sum(span > 1)) * margin) + 256, _WORD)
+    s3 = math.ceil(int(np.sum(span > 2)) * margin) + 64
+    k = min(math.ceil(int(np.max(span)) * margin) + 1, directions[1])
     return s, s2, s3, k
 
 
@@ -525,13 +526,24 @@ def _resolve(vertices, faces, grid, directions, shell, edge_table, slots):
     return vertices, faces, table, grid, directions, shell, slots
 
 
+_GROWN: dict = {}  # slots that overflowed -> the larger slots that worked (per configuration)
+
+
 def _compute(vertices, faces, table, grid, directions, shell, slots):
-    """Difference images, retrying with larger slots on overflow (concrete) or flagging it (traced)."""
+    """Difference images, retrying with larger slots on overflow (concrete) or flagging it (traced).
+
+    Concrete overflows are remembered: later calls with the same configuration and slots start
+    from the grown slots (one extra compile in all, not one extra pass per call).
+    """
     cap, width = int(table.a.shape[0]) * grid[0] * grid[1], directions[1]
+    key = (table.num_edges, table.num_faces, table.num_vertices, grid, directions, shell, slots)
+    traced = isinstance(vertices, jax.core.Tracer)
+    if not traced:
+        slots = _GROWN.get(key, slots)
     while True:
         s, s2, s3, k = slots
         diff, overflow, counts, center, radius = _run(vertices, faces, table, grid, directions, shell, slots)
-        if isinstance(overflow, jax.core.Tracer) or not bool(overflow):
+        if traced or not bool(overflow):
             return diff, overflow, center, radius
         need = [int(x) for x in np.asarray(counts)]
         # the counts are exact for the slotted edges, so one retry suffices unless S itself overflowed
@@ -539,6 +551,7 @@ def _compute(vertices, faces, table, grid, directions, shell, slots):
         grow = [max(x, math.ceil(1.25 * y)) for x, y in zip((s, s2, s3, k), need, strict=True)]
         bigger = tuple(grow)
         slots = _check_slots(bigger, cap, width)
+        _GROWN[key] = slots
 
 
 def edgescan_occlusion(
