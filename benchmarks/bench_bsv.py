@@ -196,6 +196,43 @@ def bench_one(name, size, runs, twist=0.0):
     return row
 
 
+def stage_times(name, size, runs):
+    """Median warm time (ms) of each separately jitted edge-scan stage, for one mesh."""
+    from jshadow.visibility import _edgescan as es
+
+    mesh = load_mesh(ROOT / "assets" / f"{name}.obj")
+    v, f = mesh.vertices, mesh.faces
+    d = (size, size)
+    t = es.build_edge_table(f, v.shape[0])
+    s, s2, s3, k = es.edgescan_slots(v, f, GRID, d, SHELL, edge_table=t)
+    out = {}
+
+    def run(label, fn):
+        out[label] = _timed(fn, runs)[1]
+        return fn()
+
+    _, _, comps, offset = run("1 views", lambda: es._stage_views(v, f, grid=GRID, shell=SHELL))
+    px, py, col, front = run("2 project", lambda: es._stage_project(comps, offset, directions=d, shell=SHELL))
+    cand = run("3 candidates", lambda: es._stage_candidates(front, col, t.a, t.b, t.t1, t.t2))
+    slot, most = run("4 slots", lambda: es._stage_slots(cand, slots=s))
+    params = run("5 gather", lambda: es._stage_gather(slot, px, py, col, front, t.a, t.b, t.t1, directions=d))
+    views = GRID[0] * GRID[1]
+    diff, _, _ = run(
+        "6 emit",
+        lambda: es._stage_emit(
+            params, most, views=views, directions=d, shell=SHELL, long_slots=(s2, s3), span=k
+        ),
+    )
+    basis_w = es._basis_weights(d, SHELL, N_BANDS, v.dtype)
+    run("7 SH", lambda: es._stage_sh(diff, basis_w, n=N_BANDS))
+    total = _timed(
+        lambda: bsv_mesh_edgescan(v, f, N_BANDS, GRID, d, SHELL, edge_table=t, slots=(s, s2, s3, k)).coeffs,
+        runs,
+    )[1]
+    out["whole call"] = total
+    return out
+
+
 def _table(rows):
     head = (
         "| mesh (F) | dirs | edge-scan median / best (ms) | compile + 1st (s) | brute median (ms) | "
@@ -222,6 +259,7 @@ def main(argv=None):
     ap.add_argument("--sizes", nargs="+", type=int, default=[32, 16])
     ap.add_argument("--twisted", nargs="*", default=["bunny"], help="meshes also measured twisted")
     ap.add_argument("--twist", type=float, default=1.0, help="twist (radians per bounding radius)")
+    ap.add_argument("--stages", default="bunny", help="mesh whose per-stage times are reported ('' = none)")
     ap.add_argument("--out", type=Path, default=None, help="write a markdown report here")
     args = ap.parse_args(argv)
     load0 = os.getloadavg()
@@ -238,8 +276,13 @@ def main(argv=None):
             f"  mismatches {r['mis_es']} / {r['mis_bf']}",
             flush=True,
         )
+    stages = stage_times(args.stages, 32, args.runs) if args.stages else {}
     load1 = os.getloadavg()
     table = _table(rows)
+    if stages:
+        table += f"\n\nEdge-scan stages, {args.stages} at 32² (median ms, same run):\n\n"
+        table += "| " + " | ".join(stages) + " |\n|" + "---|" * len(stages) + "\n"
+        table += "| " + " | ".join(f"{x:.2f}" for x in stages.values()) + " |"
     print(table)
     if args.out is not None:
         now = datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC")
