@@ -22,10 +22,15 @@ Usage: ``python benchmarks/bench_bsv.py [--runs 7] [--meshes bunny_small bunny s
 
 from __future__ import annotations
 
+import os
+
+# numpy's OpenBLAS threads spin after a matmul and steal the 2 cores from Embree's own threads
+# (measured: Embree trace 16 ms -> 30-50 ms, a 4 MFLOP matmul 3-10 ms); keep BLAS single-threaded
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
 import argparse
 import datetime
 import math
-import os
 import platform
 import statistics
 import subprocess
