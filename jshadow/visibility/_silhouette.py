@@ -21,8 +21,10 @@ the occluded region Ω. The occluded-region coefficients ``O_i = ∫_Ω Y_i dω`
 Visibility of a node: the ray from p along ω, to infinity, ignoring the edge's own two faces.
 An edge point bounds Ω only if the *whole* line through it is free, so geometry behind the edge
 counts as well as geometry in front of it (notes §4 pitfall 1). Rays of one viewpoint share their
-origin, so the test is one (K·n, 3) × (3, 3F) matrix product against the per-face edge-plane
-normals ``(v_k − p) × (v_{k+1} − p)``, followed by sign comparisons and the face-id mask.
+origin, so per face only the three edge-plane normals ``(v_k − p) × (v_{k+1} − p)`` are needed and a
+direction hits iff its three dot products with them are ≥ 0 (9 multiply-adds per ray and face, fused
+by XLA with the sign tests and the face-id mask). On a closed mesh a ray from an outside viewpoint can
+meet the surface only by entering through a front-facing face, so only front faces are tested.
 
 Limitations: S is only piecewise smooth; when p crosses the plane of a face next to a visible
 silhouette edge the derivative jumps, and the plain sign test returns the one-sided derivative of
