@@ -229,7 +229,7 @@ def stage_times(name, size, runs):
         ),
     )
     basis_w = es._basis_weights(d, SHELL, N_BANDS, v.dtype)
-    run("7 SH", lambda: es._stage_sh(diff, basis_w, n=N_BANDS))
+    run("7 SH", lambda: es._stage_sh(diff, basis_w, n=N_BANDS, grid=GRID))
     total = _timed(
         lambda: bsv_mesh_edgescan(v, f, N_BANDS, GRID, d, SHELL, edge_table=t, slots=(s, s2, s3, k)).coeffs,
         runs,

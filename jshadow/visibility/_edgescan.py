@@ -398,12 +398,12 @@ def _stage_occlusion(diff):
     return (count != 0).reshape(g, nx, ny1 - 1)
 
 
-@partial(jax.jit, static_argnames=("n",))
-def _stage_sh(diff, basis_w, *, n):
+@partial(jax.jit, static_argnames=("n", "grid"))
+def _stage_sh(diff, basis_w, *, n, grid):
     g = diff.shape[0]
     occ = _stage_occlusion(diff).reshape(g, -1).astype(basis_w.dtype)  # column-major pixel order
     full = jnp.zeros(n * n, basis_w.dtype).at[0].set(math.sqrt(4.0 * math.pi))
-    return full - occ @ basis_w
+    return (full - occ @ basis_w).reshape(*grid, n * n)
 
 
 # --------------------------------------------------------------------------------------------
@@ -526,12 +526,15 @@ def _resolve(vertices, faces, grid, directions, shell, edge_table, slots):
     return vertices, faces, table, grid, directions, shell, slots
 
 
+_OVERFLOW = "edge-scan slots overflowed: pass larger slots=(S, S2, S3, K) (see edgescan_slots)"
 _GROWN: dict = {}  # slots that overflowed -> the larger slots that worked (per configuration)
 
 
-def _compute(vertices, faces, table, grid, directions, shell, slots):
-    """Difference images, retrying with larger slots on overflow (concrete) or flagging it (traced).
+def _compute(vertices, faces, table, grid, directions, shell, slots, finish=lambda diff: diff):
+    """``finish(diff)`` of the difference images, retrying with larger slots on overflow (concrete)
+    or flagging it (traced).
 
+    ``finish`` is dispatched before the host waits for the overflow flag, so it runs without a gap.
     Concrete overflows are remembered: later calls with the same configuration and slots start
     from the grown slots (one extra compile in all, not one extra pass per call).
     """
@@ -543,8 +546,11 @@ def _compute(vertices, faces, table, grid, directions, shell, slots):
     while True:
         s, s2, s3, k = slots
         diff, overflow, counts, center, radius = _run(vertices, faces, table, grid, directions, shell, slots)
-        if traced or not bool(overflow):
-            return diff, overflow, center, radius
+        if traced:
+            return finish(eqx.error_if(diff, overflow, _OVERFLOW)), overflow, center, radius
+        out = finish(diff)
+        if not bool(overflow):
+            return out, overflow, center, radius
         need = [int(x) for x in np.asarray(counts)]
         # the counts are exact for the slotted edges, so one retry suffices unless S itself overflowed
         # (then the long-edge count is a lower bound and a second retry may follow)
@@ -569,8 +575,8 @@ def edgescan_occlusion(
     ``occ[i, j, y, x]`` is True iff the ray from the shell point ``p_ij`` through the centre of
     pixel (y, x) (directions of :func:`edgescan_cone_directions`, in the local frame at
     (θ_i, φ_j)) hits the mesh at t > 0. With concrete vertices an overflow of the static slots
-    is repaired by recomputing with larger ones (the flag is then False); with traced vertices the
-    flag reports it and the images are not to be trusted.
+    is repaired by recomputing with larger ones (the flag is then False); with traced vertices an
+    overflow raises at run time (``eqx.error_if``) and the flag is True.
     """
     vertices, faces, table, grid, directions, shell, slots = _resolve(
         vertices, faces, grid, directions, shell, edge_table, slots
@@ -611,20 +617,21 @@ def bsv_mesh_edgescan(
         outside the image are free and enter exactly through the constant term.
 
     Overflow of the static slots is never silent: with concrete vertices the computation is
-    redone with larger slots (one more compile); under tracing it raises at run time
-    (``eqx.error_if``). The coefficients have zero derivative with respect to the vertices
-    (binary visibility); ``center`` and ``radius`` are differentiable.
+    redone with larger slots (one more compile, remembered for later calls); under tracing it
+    raises at run time (``eqx.error_if``). The coefficients have zero derivative with respect to
+    the vertices (binary visibility); ``center`` and ``radius`` are differentiable.
     """
     if not (isinstance(n, int | np.integer) and n >= 1):
         raise ValueError(f"n (number of SH bands) must be a positive int, got {n!r}")
     vertices, faces, table, grid, directions, shell, slots = _resolve(
         vertices, faces, grid, directions, shell, edge_table, slots
     )
-    diff, overflow, center, radius = _compute(vertices, faces, table, grid, directions, shell, slots)
-    if isinstance(overflow, jax.core.Tracer):
-        diff = eqx.error_if(diff, overflow, "edge-scan slots overflowed: pass larger slots=(S, S2, S3, K)")
     basis_w = _basis_weights(directions, shell, int(n), vertices.dtype)
-    coeffs = _stage_sh(diff, basis_w, n=int(n)).reshape(*grid, n * n)
+
+    def finish(diff):
+        return _stage_sh(diff, basis_w, n=int(n), grid=grid)
+
+    coeffs, _, center, radius = _compute(vertices, faces, table, grid, directions, shell, slots, finish)
     return BSV(coeffs, center, radius, shell * radius)
 
 
@@ -637,6 +644,13 @@ def _np_basis_weights(directions, shell, n, dtype_name):
     return np.ascontiguousarray(bw.reshape(ny, nx, -1).transpose(1, 0, 2).reshape(ny * nx, -1))
 
 
+_DEVICE_BASIS: dict = {}
+
+
 def _basis_weights(directions, shell, n, dtype):
     """``w_k · Y(ω_k)`` (K, n²) of the pixel-centre directions, column-major pixel order, cached."""
-    return jnp.asarray(_np_basis_weights(directions, shell, n, jnp.dtype(dtype).name))
+    key = (directions, shell, n, jnp.dtype(dtype).name)
+    if key not in _DEVICE_BASIS:
+        with jax.ensure_compile_time_eval():
+            _DEVICE_BASIS[key] = jnp.asarray(_np_basis_weights(*key))
+    return _DEVICE_BASIS[key]
