@@ -196,9 +196,9 @@ def test_overflow_is_repaired_and_traced_overflow_raises(bunny_small):
 
 def test_similarity_invariance(bunny_small):
     v, f = bunny_small
-    a = bsv_mesh_edgescan(v, f, 2, (4, 6), (16, 16), SHELL).coeffs
+    a = bsv_mesh_edgescan(v, f, 2, GRID, (16, 16), SHELL).coeffs
     b = bsv_mesh_edgescan(
-        0.5 * v + jnp.asarray([0.25, -2.0, 0.5], v.dtype), f, 2, (4, 6), (16, 16), SHELL
+        0.5 * v + jnp.asarray([0.25, -2.0, 0.5], v.dtype), f, 2, GRID, (16, 16), SHELL
     ).coeffs
     # identical images up to pixel centres within rounding of an edge: at most a few pixels differ
     _, w = edgescan_cone_directions((16, 16), SHELL)
