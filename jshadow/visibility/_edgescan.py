@@ -411,6 +411,24 @@ def _stage_sh(diff, basis_w, *, n, grid):
 # --------------------------------------------------------------------------------------------
 
 
+_TABLES: dict = {}  # topology -> EdgeTable, for calls that pass no edge_table
+_REST_SLOTS: dict = {}  # (topology, configuration) -> slots measured on the first pose seen
+
+
+def _topology_key(faces, num_vertices):
+    f = np.ascontiguousarray(np.asarray(faces))
+    return (f.shape, str(f.dtype), num_vertices, hash(f.tobytes()))
+
+
+def _cached_edge_table(faces, num_vertices):
+    key = _topology_key(faces, num_vertices)
+    if key not in _TABLES:
+        if len(_TABLES) >= 64:
+            _TABLES.clear()
+        _TABLES[key] = build_edge_table(faces, num_vertices)
+    return _TABLES[key]
+
+
 def _prepare(vertices, faces, edge_table):
     vertices = jnp.asarray(vertices)
     if vertices.ndim != 2 or vertices.shape[-1] != 3 or vertices.shape[0] == 0:
@@ -421,7 +439,7 @@ def _prepare(vertices, faces, edge_table):
     if faces.ndim != 2 or faces.shape[-1] != 3 or not jnp.issubdtype(faces.dtype, jnp.integer):
         raise ValueError(f"faces must be an int array of shape (F, 3), got {faces.dtype} {faces.shape}")
     if edge_table is None:
-        edge_table = build_edge_table(faces, vertices.shape[0])
+        edge_table = _cached_edge_table(faces, vertices.shape[0])
     if edge_table.num_faces != faces.shape[0] or edge_table.num_vertices > vertices.shape[0]:
         raise ValueError(
             f"edge_table was built for {edge_table.num_faces} faces and {edge_table.num_vertices} "
@@ -520,8 +538,13 @@ def _resolve(vertices, faces, grid, directions, shell, edge_table, slots):
     if slots is None:
         if isinstance(vertices, jax.core.Tracer):
             slots = _traced_default_slots(table.num_faces, grid, directions)
-        else:
-            slots = edgescan_slots(vertices, faces, grid, directions, shell, edge_table=table)
+        else:  # measured on the first pose seen with this topology (the rest pose), then reused
+            key = (_topology_key(faces, vertices.shape[0]), str(vertices.dtype), grid, directions, shell)
+            if key not in _REST_SLOTS:
+                if len(_REST_SLOTS) >= 256:
+                    _REST_SLOTS.clear()
+                _REST_SLOTS[key] = edgescan_slots(vertices, faces, grid, directions, shell, edge_table=table)
+            slots = _REST_SLOTS[key]
     slots = _check_slots(slots, int(table.a.shape[0]) * grid[0] * grid[1], directions[1])
     return vertices, faces, table, grid, directions, shell, slots
 
@@ -606,11 +629,13 @@ def bsv_mesh_edgescan(
         directions: (N_y, N_x) pixels of the gnomonic image of the cone holding the bounding
             sphere (half-angle ``asin(1/shell)``); pixel centres are the ray directions.
         shell: R / r > 1.
-        edge_table: :func:`build_edge_table` of ``faces`` (built here if None; build it once per
-            topology to save the host work).
-        slots: static ``(S, S2, S3, K)`` from :func:`edgescan_slots` on the rest pose (if None:
-            measured on ``vertices`` when they are concrete, generous defaults from the face count
-            when they are traced; pass them for speed under ``jit``).
+        edge_table: :func:`build_edge_table` of ``faces``; if None it is built once per topology
+            and cached (keyed by a hash of the faces).
+        slots: static ``(S, S2, S3, K)`` from :func:`edgescan_slots` on the rest pose. If None and
+            the vertices are concrete, they are measured on the first pose seen with this topology
+            and configuration and reused for later poses (an overflow then grows them once); if
+            the vertices are traced, generous defaults from the face count are used (pass slots
+            for speed under ``jit``).
 
     Returns:
         :class:`BSV` with ``coeffs`` (T, P, n²) = ``√(4π)·e0 − Σ_pixels occ·w·Y``: directions
