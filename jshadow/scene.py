@@ -26,14 +26,16 @@ import math
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
 from . import sh
 from .entities import MeshOccluder, Scene, SphereOccluder, frame_time, receivers_at_time
 from .field import bsv_visibility_sh, sphere_visibility_sh, unit_visibility
+from .geometry import bounding_sphere
 from .lights import environment_sh, sphere_light_sh
 from .scaling import MkTable, mk_table
-from .visibility import BSV, bsv_mesh, bsv_sphere
+from .visibility import BSV, bsv_mesh, bsv_mesh_diff, bsv_silhouette_counts, bsv_sphere
 
 __all__ = [
     "RenderResult",
@@ -92,19 +94,53 @@ def occluder_bsv(occ, t, scene: Scene, sphere_path: str = "analytic") -> BSV | N
     raise TypeError(f"unknown occluder type {type(occ).__name__}")
 
 
-def mesh_bsv(occ: MeshOccluder, t, scene: Scene) -> BSV:
-    """BSV of one mesh occluder at time t (deformed vertices, per-frame bounding sphere)."""
+def mesh_bsv(occ: MeshOccluder, t, scene: Scene, differentiable: bool = True) -> BSV:
+    """BSV of one mesh occluder at time t (deformed vertices, per-frame bounding sphere).
+
+    With ``differentiable`` (and concrete faces, the usual case) the coefficients carry the
+    silhouette-edge derivative of :func:`jshadow.visibility.bsv_mesh_diff`, so ``jax.grad`` /
+    ``jax.jvp`` with respect to vertices and deformation parameters are visibility-correct; the
+    forward value is exactly that of :func:`jshadow.visibility.bsv_mesh` with the method's options.
+    The centre and radius of the bounding sphere are differentiable either way.
+    """
     m = scene.method
     v = occ.vertices(t)
-    return bsv_mesh(
-        v,
-        occ.faces,
-        n=m.sh_bands,
-        grid=m.bsv_grid,
-        directions=m.directions,
-        shell=m.shell,
-        method=m.bsv_method,
-    )
+    kw = dict(n=m.sh_bands, grid=m.bsv_grid, directions=m.directions, shell=m.shell)
+    faces = _concrete(occ.faces)
+    if not differentiable or faces is None:
+        return bsv_mesh(v, occ.faces, method=m.bsv_method, **kw)
+
+    def forward(x):
+        return bsv_mesh(x, faces, method=m.bsv_method, **kw).coeffs
+
+    coeffs = bsv_mesh_diff(v, faces, forward=forward, slots=_slots(occ, faces, m), nodes=8, **kw)
+    center, radius = bounding_sphere(v)
+    return BSV(coeffs=coeffs, center=center, radius=radius, shell_radius=m.shell * radius)
+
+
+def _concrete(x):
+    """``x`` as a numpy array if it is concrete (not a tracer), else None."""
+    try:
+        return np.asarray(x)
+    except jax.errors.TracerArrayConversionError:
+        return None
+
+
+_SLOTS: dict = {}
+
+
+def _slots(occ: MeshOccluder, faces: np.ndarray, m) -> int | None:
+    """Silhouette slots per viewpoint: 1.5 × the largest count at the rest pose (cached per mesh);
+    None (every edge: never overflows, slower) when the rest pose is not concrete."""
+    unit = _concrete(occ.unit_vertices)
+    if unit is None:
+        return None
+    key = (hash(unit.tobytes()), hash(faces.tobytes()), m.bsv_grid, m.shell)
+    if key not in _SLOTS:
+        with jax.ensure_compile_time_eval():
+            counts = bsv_silhouette_counts(unit, faces, grid=m.bsv_grid, shell=m.shell)
+        _SLOTS[key] = int(min(int(1.5 * int(np.max(counts))) + 8, 3 * faces.shape[0] // 2))
+    return _SLOTS[key]
 
 
 def occluder_visibilities(

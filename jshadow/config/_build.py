@@ -158,9 +158,13 @@ def _occluder(config: Config, i: int, occ: OccluderConfig, dtype):
             deform = make_deformation(occ.deform.type, occ.deform.amount.astype(dtype), **params)
         except ValueError as err:
             raise ConfigError(config.source, f"occluder[{i}].deform", str(err)) from None
+    # The mesh read from file is data, not a parameter: keep it concrete even when build_scene runs
+    # under jit/grad, so that the BSV can use the topology statically (edge tables, slot counts).
+    with jax.ensure_compile_time_eval():
+        unit_vertices, faces = jnp.asarray(unit, dtype), jnp.asarray(faces, jnp.int32)
     return MeshOccluder(
-        unit_vertices=jnp.asarray(unit, dtype),
-        faces=jnp.asarray(faces, jnp.int32),
+        unit_vertices=unit_vertices,
+        faces=faces,
         center=center,
         radius=radius,
         deform=deform,

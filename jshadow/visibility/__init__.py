@@ -20,6 +20,7 @@ from ._bsv import bsv_update as bsv_update
 from ._bsv import is_closed_manifold as is_closed_manifold
 from ._bsv_grad import bsv_mesh_diff as bsv_mesh_diff
 from ._bsv_grad import bsv_sh_tangent as bsv_sh_tangent
+from ._bsv_grad import bsv_silhouette_counts as bsv_silhouette_counts
 from ._directions import cap_sh_projection as cap_sh_projection
 from ._directions import far_hemisphere_sh_projection as far_hemisphere_sh_projection
 from ._directions import hemisphere_directions as hemisphere_directions
@@ -30,3 +31,6 @@ from ._frames import bsv_grid_angles as bsv_grid_angles
 from ._raycast import ray_fan_any_hit as ray_fan_any_hit
 from ._raycast import ray_sphere_any_hit as ray_sphere_any_hit
 from ._raycast import ray_triangle_any_hit as ray_triangle_any_hit
+from ._silhouette import SilhouetteSamples as SilhouetteSamples
+from ._silhouette import silhouette_edges_table as silhouette_edges_table
+from ._silhouette import silhouette_samples as silhouette_samples
