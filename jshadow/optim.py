@@ -5,11 +5,20 @@ target's mean square so that it is scale-free:
 ``loss(θ) = mean((L(θ) − L*)²) / mean(L*²)``. Gradients flow through
 :func:`jshadow.scene.render`; for mesh occluders whose *shape* changes, the BSV's gradient with
 respect to vertex positions is only non-zero with the silhouette (visibility) gradient, see
-:mod:`jshadow.visibility`.
+:mod:`jshadow.visibility` (the deformable-shadow-fields paper resamples the BSV per frame; its
+derivative is the silhouette line integral of DESIGN.md §1.6).
+
+Several targets at once: :func:`plane_radiances` renders one scene under several light sets while
+computing each occluder's BSV only once (the BSV does not depend on the lights), so a shape can be
+fitted to the shadows it casts under, e.g., four different sphere-light positions.
+
+Shape priors: :func:`laplacian_penalty` is the squared uniform (umbrella) Laplacian of a per-vertex
+field, the usual smoothness regulariser for free vertex offsets.
 """
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
@@ -18,63 +27,159 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
+from jaxtyping import Array, Float
 
-from .entities import Scene
-from .scene import render
+from ._types import Faces
+from .entities import Scene, frame_time
+from .scene import render, render_at, scene_bsvs
 
-__all__ = ["FitResult", "plane_radiance", "relative_mse", "fit_params"]
+__all__ = [
+    "FitResult",
+    "plane_radiance",
+    "plane_radiances",
+    "relative_mse",
+    "laplacian_penalty",
+    "uniform_laplacian",
+    "fit",
+    "fit_params",
+]
 
 
 @dataclass
 class FitResult:
+    """What a fit returns.
+
+    ``params``: final values (one array per parameter); ``loss``: the loss per step, evaluated at the
+    parameters *before* that step's update; ``history``: parameter values before each step (empty
+    when not kept); ``first_step_s``: wall time of the first step (compilation included);
+    ``step_s``: wall time of every later step (seconds).
+    """
+
     params: list  # final values, one array per parameter
     loss: list[float] = field(default_factory=list)
     history: list = field(default_factory=list)  # parameter values per step
+    first_step_s: float = 0.0
+    step_s: list[float] = field(default_factory=list)
+
+    @property
+    def ms_per_step(self) -> float:
+        """Median wall time of one compiled step in milliseconds (nan for a single step)."""
+        return float(np.median(self.step_s) * 1e3) if self.step_s else float("nan")
 
 
-def plane_radiance(scene: Scene, frame: int = 0) -> jax.Array:
+def plane_radiance(scene: Scene, frame: int = 0) -> Float[Array, "N 3"]:
     """Outgoing radiance (N_plane, 3) of the scene's plane receivers at ``frame``."""
     n = scene.receivers.points.shape[0]
     return render(scene, frame).radiance[:n]
 
 
-def relative_mse(pred: jax.Array, target: jax.Array) -> jax.Array:
-    """mean((pred − target)²) / mean(target²) (0 for a perfect fit, 1 for predicting zeros)."""
-    return jnp.mean((pred - target) ** 2) / jnp.maximum(jnp.mean(target**2), 1e-30)
-
-
-def fit_params(
-    make_scene: Callable[[Sequence[jax.Array]], Scene],
-    init: Sequence[jax.Array],
-    target: jax.Array,
-    steps: int = 200,
-    learning_rate: float = 0.05,
-    optimizer: optax.GradientTransformation | None = None,
-    progress: bool = False,
-    frame: int = 0,
-    regularization: float = 0.0,
-) -> FitResult:
-    """Minimise :func:`relative_mse` of the plane radiance over the parameters with optax (Adam).
+def plane_radiances(scene: Scene, light_sets: Sequence[tuple], frame: int = 0) -> Float[Array, "K N 3"]:
+    """Plane radiance of ``scene`` under each of K light sets (the scene's own lights replaced).
 
     Args:
-        make_scene: parameters (a list of arrays) → scene; must be traceable (``build_scene`` of a
-            config with the parameters set by ``eqx.tree_at`` is).
-        init: starting values.
-        target: (N_plane, 3) target radiance.
-        frame: the animation frame rendered.
-        regularization: weight w of the penalty ``w · Σ ‖p − p_init‖²`` added to the loss.
+        scene: the scene; its ``lights`` are ignored, its occluders and environment are kept.
+        light_sets: K tuples of :class:`jshadow.entities.SphereLight` (a tuple may be empty).
+        frame: the animation frame.
+
+    Returns:
+        (K, N_plane, 3) outgoing radiance. The occluders' BSVs are sampled once and shared by the K
+        renderings (they do not depend on the lights), so K targets cost about one BSV.
     """
-    params = [jnp.asarray(p, jnp.float32) for p in init]
+    if len(light_sets) == 0:
+        raise ValueError("plane_radiances expects at least one light set, got none")
+    t = frame_time(frame, scene.n_frames)
+    bsvs = scene_bsvs(scene, t)
+    n = scene.receivers.points.shape[0]
+    out = []
+    for lights in light_sets:
+        sc = eqx.tree_at(lambda s: s.lights, scene, tuple(lights))
+        out.append(render_at(sc, t, bsvs=bsvs).radiance[:n])
+    return jnp.stack(out)
+
+
+def relative_mse(pred: Float[Array, "... N C"], target: Float[Array, "... N C"]) -> Float[Array, ""]:
+    """mean((pred − target)²) / mean(target²): 0 for a perfect fit, 1 for predicting zeros.
+
+    Symmetric in a common scale (``relative_mse(s·p, s·t) = relative_mse(p, t)``), non-negative.
+    Means run over all axes; a target of all zeros divides by the dtype's tiny value instead of 0.
+    """
+    pred, target = jnp.asarray(pred), jnp.asarray(target)
+    if pred.shape != target.shape:
+        raise ValueError(f"relative_mse expects equal shapes, got {pred.shape} and {target.shape}")
+    tiny = jnp.finfo(target.dtype).tiny
+    return jnp.mean((pred - target) ** 2) / jnp.maximum(jnp.mean(target**2), tiny)
+
+
+def _check_faces(faces, n_vertices: int) -> np.ndarray:
+    f = np.asarray(faces)
+    if f.ndim != 2 or f.shape[1] != 3 or not np.issubdtype(f.dtype, np.integer):
+        raise ValueError(f"faces must be an integer array of shape (F, 3), got {f.dtype} {f.shape}")
+    if f.size and (f.min() < 0 or f.max() >= n_vertices):
+        raise ValueError(f"faces index vertices 0..{n_vertices - 1}, got indices {f.min()}..{f.max()}")
+    return f
+
+
+def uniform_laplacian(field: Float[Array, "... V C"], faces: Faces) -> Float[Array, "... V C"]:
+    """Uniform ("umbrella") Laplacian of a per-vertex field: ``(L u)_i = u_i − mean_{j ∈ N(i)} u_j``.
+
+    N(i) are the vertices sharing an edge with i (each neighbour counted once). Isolated vertices
+    (no edge) get 0. ``faces`` must be concrete (the adjacency is built with numpy); ``field`` may be
+    traced and carries leading batch axes. The uniform weights ignore edge lengths and angles (unlike
+    the cotangent Laplacian), so L of a linear field is exactly 0 only on regular neighbourhoods.
+    """
+    field = jnp.asarray(field)
+    if field.ndim < 2:
+        raise ValueError(f"uniform_laplacian expects a field of shape (..., V, C), got {field.shape}")
+    v = field.shape[-2]
+    f = _check_faces(faces, v)
+    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    e = np.unique(np.sort(e, axis=1), axis=0)  # undirected edges, once each
+    e = e[e[:, 0] != e[:, 1]]
+    src = np.concatenate([e[:, 0], e[:, 1]])
+    dst = np.concatenate([e[:, 1], e[:, 0]])
+    deg = np.bincount(src, minlength=v).astype(np.float64)
+    inv_deg = jnp.asarray(np.where(deg > 0, 1.0 / np.maximum(deg, 1.0), 0.0), field.dtype)
+    neigh_sum = jnp.zeros_like(field).at[..., src, :].add(field[..., dst, :])
+    has = jnp.asarray(deg > 0)[:, None]
+    return jnp.where(has, field - neigh_sum * inv_deg[:, None], 0.0)
+
+
+def laplacian_penalty(offsets: Float[Array, "... V 3"], faces: Faces) -> Float[Array, "..."]:
+    """Smoothness penalty of per-vertex offsets: ``mean_i ‖(L o)_i‖²`` with the *uniform* Laplacian.
+
+    Args:
+        offsets: (..., V, 3) per-vertex displacements (any units; the penalty has units²).
+        faces: (F, 3) concrete integer faces defining the vertex adjacency.
+
+    Returns:
+        (...) the penalty: 0 for a constant field (a rigid translation costs nothing), positive for a
+        spike; quadratic in ``offsets``, so its gradient is ``2 Lᵀ L o / V``. See
+        :func:`uniform_laplacian` for the weights and their limitation on irregular meshes.
+    """
+    lap = uniform_laplacian(offsets, faces)
+    return jnp.mean(jnp.sum(lap * lap, axis=-1), axis=-1)
+
+
+def fit(
+    loss_fn: Callable[[list], Float[Array, ""]],
+    init: Sequence,
+    steps: int = 200,
+    optimizer: optax.GradientTransformation | None = None,
+    learning_rate: float = 0.05,
+    progress: bool = False,
+    keep_history: bool = True,
+    dtype=jnp.float32,
+) -> FitResult:
+    """Minimise ``loss_fn(params)`` over a list of arrays with optax (Adam by default).
+
+    The whole step (loss, gradient, update) is one ``eqx.filter_jit``; the loss is read back each
+    step. ``init`` values are cast to ``dtype``. Raises ``ValueError`` for ``steps < 1``.
+    """
+    if steps < 1:
+        raise ValueError(f"steps must be a positive integer, got {steps}")
+    params = [jnp.asarray(p, dtype) for p in init]
     opt = optimizer or optax.adam(learning_rate)
     state = opt.init(params)
-
-    start = [jnp.asarray(p) for p in params]
-
-    def loss_fn(p):
-        loss = relative_mse(plane_radiance(make_scene(p), frame), target)
-        if regularization:
-            loss = loss + regularization * sum(jnp.sum((a - b) ** 2) for a, b in zip(p, start, strict=True))
-        return loss
 
     @eqx.filter_jit
     def step(params, state):
@@ -88,11 +193,80 @@ def fit_params(
         from tqdm.auto import tqdm
 
         it = tqdm(it, desc="fit", unit="step")
-    for _ in it:
-        result.history.append([np.asarray(p).tolist() for p in params])
+    for i in it:
+        if keep_history:
+            result.history.append([np.asarray(p).tolist() for p in params])
+        t0 = time.perf_counter()
         params, state, loss = step(params, state)
-        result.loss.append(float(loss))
+        loss = float(loss)  # blocks until the step is done
+        dt = time.perf_counter() - t0
+        if i == 0:
+            result.first_step_s = dt
+        else:
+            result.step_s.append(dt)
+        result.loss.append(loss)
         if progress:
-            it.set_postfix(loss=f"{float(loss):.3e}")
+            it.set_postfix(loss=f"{loss:.3e}")
     result.params = params
     return result
+
+
+def fit_params(
+    make_scene: Callable[[Sequence[jax.Array]], Scene],
+    init: Sequence[jax.Array],
+    target: jax.Array,
+    steps: int = 200,
+    learning_rate: float = 0.05,
+    optimizer: optax.GradientTransformation | None = None,
+    progress: bool = False,
+    frame: int = 0,
+    regularization: float = 0.0,
+    light_sets: Sequence[tuple] | None = None,
+    penalty: Callable[[list], jax.Array] | None = None,
+    keep_history: bool = True,
+) -> FitResult:
+    """Minimise :func:`relative_mse` of the plane radiance over the parameters with optax (Adam).
+
+    Args:
+        make_scene: parameters (a list of arrays) → scene; must be traceable (``build_scene`` of a
+            config with the parameters set by ``eqx.tree_at`` is).
+        init: starting values.
+        target: (N_plane, 3) target radiance; with ``light_sets``, (K, N_plane, 3), one per set.
+        frame: the animation frame rendered.
+        regularization: weight w of the penalty ``w · Σ ‖p − p_init‖²`` added to the loss.
+        light_sets: optional K light sets (see :func:`plane_radiances`); the loss is then the *sum*
+            over k of the relative MSE against ``target[k]``.
+        penalty: optional ``params → scalar`` added to the loss (e.g. a weighted
+            :func:`laplacian_penalty` of an offset field).
+        keep_history: record the parameters before every step in ``FitResult.history``.
+    """
+    target = jnp.asarray(target)
+    if light_sets is not None and (target.ndim != 3 or target.shape[0] != len(light_sets)):
+        raise ValueError(
+            f"with {len(light_sets)} light sets the target must have shape ({len(light_sets)}, N, 3), "
+            f"got {target.shape}"
+        )
+    start = [jnp.asarray(p, jnp.float32) for p in init]
+
+    def loss_fn(p):
+        scene = make_scene(p)
+        if light_sets is None:
+            loss = relative_mse(plane_radiance(scene, frame), target)
+        else:
+            pred = plane_radiances(scene, light_sets, frame)
+            loss = sum(relative_mse(pred[k], target[k]) for k in range(len(light_sets)))
+        if regularization:
+            loss = loss + regularization * sum(jnp.sum((a - b) ** 2) for a, b in zip(p, start, strict=True))
+        if penalty is not None:
+            loss = loss + penalty(p)
+        return loss
+
+    return fit(
+        loss_fn,
+        start,
+        steps=steps,
+        optimizer=optimizer,
+        learning_rate=learning_rate,
+        progress=progress,
+        keep_history=keep_history,
+    )
