@@ -161,11 +161,19 @@ def occluder_visibilities(
 
 
 def _product(vs: list) -> Float[Array, "N n2"] | None:
+    """SH product of several visibilities, truncated to n bands after every factor.
+
+    Up to three factors are multiplied inline; more go through ``lax.scan`` so that the (unrolled,
+    sparse) triple product is compiled once instead of once per occluder.
+    """
     if not vs:
         return None
-    acc = vs[0]
-    for v in vs[1:]:
-        acc = sh.sh_product(acc, v)
+    if len(vs) <= 3:
+        acc = vs[0]
+        for v in vs[1:]:
+            acc = sh.sh_product(acc, v)
+        return acc
+    acc, _ = jax.lax.scan(lambda a, v: (sh.sh_product(a, v), None), vs[0], jnp.stack(vs[1:]))
     return acc
 
 
