@@ -64,11 +64,11 @@ class Renderer:
         for i, occ in enumerate(self.scene.occluders):
             if shape_is_static(occ):
                 if i not in self._static_bsvs:
-                    self._static_bsvs[i] = occluder_bsv(occ, 0.0, self.scene, self.sphere_path)
+                    self._static_bsvs[i] = occluder_bsv(occ, 0.0, self.scene, self.sphere_path, False)
                     self.bsv_computations += self._static_bsvs[i] is not None
                 out.append(self._static_bsvs[i])
             else:
-                out.append(occluder_bsv(occ, t, self.scene, self.sphere_path))
+                out.append(occluder_bsv(occ, t, self.scene, self.sphere_path, False))
                 self.bsv_computations += 1
         return tuple(out)
 

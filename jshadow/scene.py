@@ -80,8 +80,10 @@ def scene_bsvs(scene: Scene, t, sphere_path: str = "analytic") -> tuple[BSV | No
     return tuple(occluder_bsv(occ, t, scene, sphere_path) for occ in scene.occluders)
 
 
-def occluder_bsv(occ, t, scene: Scene, sphere_path: str = "analytic") -> BSV | None:
-    """BSV of one occluder at time t (see :func:`scene_bsvs`)."""
+def occluder_bsv(
+    occ, t, scene: Scene, sphere_path: str = "analytic", differentiable: bool = True
+) -> BSV | None:
+    """BSV of one occluder at time t (see :func:`scene_bsvs`; ``differentiable`` see :func:`mesh_bsv`)."""
     m = scene.method
     if isinstance(occ, SphereOccluder):
         if sphere_path == "analytic":
@@ -90,7 +92,7 @@ def occluder_bsv(occ, t, scene: Scene, sphere_path: str = "analytic") -> BSV | N
             raise ValueError(f"sphere_path must be 'analytic' or 'bsv', got {sphere_path!r}")
         return bsv_sphere(occ.center, occ.radius, n=m.sh_bands, grid=m.bsv_grid, shell=m.shell)
     if isinstance(occ, MeshOccluder):
-        return mesh_bsv(occ, t, scene)
+        return mesh_bsv(occ, t, scene, differentiable)
     raise TypeError(f"unknown occluder type {type(occ).__name__}")
 
 
@@ -101,7 +103,9 @@ def mesh_bsv(occ: MeshOccluder, t, scene: Scene, differentiable: bool = True) ->
     silhouette-edge derivative of :func:`jshadow.visibility.bsv_mesh_diff`, so ``jax.grad`` /
     ``jax.jvp`` with respect to vertices and deformation parameters are visibility-correct; the
     forward value is exactly that of :func:`jshadow.visibility.bsv_mesh` with the method's options.
-    The centre and radius of the bounding sphere are differentiable either way.
+    The centre and radius of the bounding sphere are differentiable either way. Pass
+    ``differentiable=False`` when no derivative is wanted: the sampler then runs directly, outside
+    the custom-derivative wrapper (which traces its primal and so loses the edge-scan's staging).
     """
     m = scene.method
     v = occ.vertices(t)

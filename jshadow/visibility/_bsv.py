@@ -19,6 +19,7 @@ notes/visibility-gradients.md for the boundary term that supplies one).
 
 from __future__ import annotations
 
+import functools
 import math
 from functools import partial
 
@@ -154,7 +155,13 @@ def is_closed_manifold(faces: Int[ArrayLike, "F 3"]) -> bool:
         return False
     if f.ndim != 2 or f.shape[-1] != 3 or f.shape[0] == 0:
         return False
-    f = f.astype(np.int64)
+    return _closed_manifold_cached(f.astype(np.int64).tobytes(), f.shape[0])
+
+
+@functools.lru_cache(maxsize=64)
+def _closed_manifold_cached(buf: bytes, num_faces: int) -> bool:
+    # cached per topology: the check is O(F log F) numpy work, run on every frame otherwise
+    f = np.frombuffer(buf, np.int64).reshape(num_faces, 3)
     if np.any((f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 2] == f[:, 0])):
         return False
     a = f.reshape(-1)
