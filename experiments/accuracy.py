@@ -19,6 +19,8 @@ than the *unoccluded* irradiance by more than 1 % (unoccluded = the reference of
 occluders removed; only counted where the excess also exceeds 3 standard errors of that reference),
 the stderr ratio, times (render: median of 5 warm frames on fresh renderers, BSV included; compile
 separately; reference: wall time). For self-shadowing scenes the plane-only errors are given too.
+Diagnostics against the same reference: the scene rendered with ``shell = 1.5`` and with
+``model = "sphere"``; the unoccluded render's error; a sphere-proxy scene (see :func:`proxy_scene`).
 
 Usage (repository root, project environment active)::
 
@@ -67,13 +69,38 @@ CASES = [
 ]
 
 
-def load_scene(file: str, res: int):
-    """The shipped config with the receiver plane at res × res vertices; (scene, config dict)."""
+# method variants rendered beside the shipped setting (same reference): (label, [method] keys)
+VARIANTS = [("shell1.5", {"shell": 1.5}), ("sphere_model", {"model": "sphere"})]
+
+
+def load_scene(file: str, res: int, method: dict | None = None):
+    """The shipped config with the receiver plane at res × res vertices and ``method`` keys
+    overriding its ``[method]`` table; (scene, config dict, path)."""
     path = CONFIGS / file
-    d = tomllib.loads(path.read_text())
-    d = copy.deepcopy(d)
+    d = copy.deepcopy(tomllib.loads(path.read_text()))
     d.setdefault("receiver", {})["resolution"] = [res, res]
-    return build_scene(config_from_dict(d, source=str(path), root=path.parent)), d
+    d.setdefault("method", {}).update(method or {})
+    return build_scene(config_from_dict(d, source=str(path), root=path.parent)), d, path
+
+
+def proxy_scene(d: dict, path: pathlib.Path, scale: float):
+    """Diagnostic: the same scene (plane receivers only) with every mesh occluder replaced by a
+    sphere of ``scale`` × its bounding radius at its centre (sphere occluders stay as they are),
+    rendered on the analytic sphere path. Its error is the part of the method's error that the
+    occluder model does not cause (lighting and visibility truncated to n bands, their truncated
+    product)."""
+    d = copy.deepcopy(d)
+    d["occluder"] = [
+        {
+            "type": "sphere",
+            "center": o["center"],
+            "radius": o["radius"] * (1.0 if o.get("type") == "sphere" else scale),
+        }
+        for o in d.get("occluder", [])
+    ]
+    d["receiver"]["self_shadow"] = False
+    d.pop("animation", None)
+    return build_scene(config_from_dict(d, source=str(path), root=path.parent))
 
 
 def render_timed(scene, frame: int, runs: int = 5):
@@ -107,9 +134,9 @@ def reference_to_target(scene, frame, pilot, target, max_spp, seed, rendered):
     return acc, time.perf_counter() - t0
 
 
-def unoccluded(scene, frame, spp, seed):
-    """Reference irradiance of the plane receivers with every occluder removed (mean, stderr)."""
-    bare = type(scene)(
+def bare_scene(scene):
+    """The scene's plane receivers and lights without any occluder."""
+    return type(scene)(
         method=scene.method,
         receivers=scene.receivers,
         occluders=(),
@@ -118,7 +145,11 @@ def unoccluded(scene, frame, spp, seed):
         self_shadow=False,
         n_frames=scene.n_frames,
     )
-    r = jshadow.reference(bare, spp, jax.random.PRNGKey(seed + 2000), frame=frame)
+
+
+def unoccluded(scene, frame, spp, seed):
+    """Reference irradiance of the plane receivers with every occluder removed (mean, stderr)."""
+    r = jshadow.reference(bare_scene(scene), spp, jax.random.PRNGKey(seed + 2000), frame=frame)
     return np.asarray(r.irradiance, np.float64), np.asarray(r.irradiance_stderr, np.float64)
 
 
@@ -158,6 +189,7 @@ def main() -> None:
     ap.add_argument("--target", type=float, default=0.1, help="wanted stderr_rms / RMSE")
     ap.add_argument("--max-spp", type=int, default=16384, help="cap on the reference's total spp")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--proxy-scale", type=float, default=0.6, help="sphere proxy radius / bounding radius")
     ap.add_argument("--only", nargs="*", default=None, help="case names to run (default: all)")
     args = ap.parse_args()
     RESULTS.mkdir(parents=True, exist_ok=True)
@@ -167,7 +199,7 @@ def main() -> None:
     for name, file, frame in CASES:
         if args.only and name not in args.only:
             continue
-        scene, d = load_scene(file, args.res)
+        scene, d, path = load_scene(file, args.res)
         frame = scene.n_frames - 1 if frame is None else frame
         res, first_ms, stage_ms = render_timed(scene, frame)
         a = np.asarray(res.irradiance, np.float64)
@@ -179,6 +211,25 @@ def main() -> None:
         t0 = time.perf_counter()
         free, free_se = unoccluded(scene, frame, args.pilot, args.seed)
         free_s = time.perf_counter() - t0
+        bare = Renderer(bare_scene(scene)).frame(frame)[0]
+        e_bare = frame_errors(np.asarray(bare.irradiance, np.float64), free)
+        proxy = proxy_scene(d, path, args.proxy_scale)
+        e_proxy = {}
+        if frame == 0:  # the proxy is undeformed: compare at the rest pose only
+            p_ref = jshadow.reference(proxy, args.pilot, jax.random.PRNGKey(args.seed + 3000))
+            p_img = np.asarray(Renderer(proxy).frame(0)[0].irradiance, np.float64)
+            e_proxy = frame_errors(p_img, np.asarray(p_ref.irradiance, np.float64))
+        variants = {}
+        for label, opts in VARIANTS:
+            v_scene = load_scene(file, args.res, opts)[0]
+            v_img, _, v_ms = render_timed(v_scene, frame, runs=3)
+            v_err = frame_errors(np.asarray(v_img.irradiance, np.float64), ref)
+            variants[label] = {
+                "method": opts,
+                "rel_rmse_pct": 100 * v_err["rel_rmse"],
+                "max_rel_err_pct": 100 * v_err["max_rel_err"],
+                "render_warm_ms": v_ms["total_ms"],
+            }
         excess = a[:n_plane] - 1.01 * free
         brighter = np.any((excess > 0) & (excess > 3.0 * free_se), axis=1)
         row = {
@@ -198,6 +249,11 @@ def main() -> None:
             "ref_stderr_ratio": float(np.sqrt(np.mean(se**2))) / e["rmse"],
             "frac_plane_brighter_than_unoccluded_1pct": float(np.mean(brighter)),
             "max_plane_excess_over_unoccluded_pct": 100 * float(np.max(a[:n_plane] / free - 1.0)),
+            "unoccluded_render_rel_rmse_pct": 100 * e_bare["rel_rmse"],
+            "unoccluded_render_max_rel_err_pct": 100 * e_bare["max_rel_err"],
+            "sphere_proxy_rel_rmse_pct": 100 * e_proxy["rel_rmse"] if e_proxy else None,
+            "sphere_proxy_max_rel_err_pct": 100 * e_proxy["max_rel_err"] if e_proxy else None,
+            "variants": variants,
             "render_first_call_ms": first_ms,
             "render_warm_ms": stage_ms,
             "reference_s": ref_s,
@@ -225,7 +281,10 @@ def main() -> None:
             f"{name:>20} f{frame:<3} spp {spp:6d}: rel RMSE {row['rel_rmse_pct']:6.2f} %  "
             f"max {row['max_rel_err_pct']:6.2f} %  stderr ratio {row['ref_stderr_ratio']:.3f}  "
             f"brighter {row['frac_plane_brighter_than_unoccluded_1pct']:.3f}  "
-            f"render {stage_ms['total_ms']:.1f} ms  ref {ref_s:.1f} s",
+            f"bare {row['unoccluded_render_rel_rmse_pct']:.2f} %  "
+            f"proxy {row['sphere_proxy_rel_rmse_pct'] or 0:.2f} %  "
+            f"render {stage_ms['total_ms']:.1f} ms  ref {ref_s:.1f} s  "
+            + "  ".join(f"{k} {v['rel_rmse_pct']:.2f} %" for k, v in variants.items()),
             flush=True,
         )
     lim = max(float(np.max(np.abs(m))) for m in maps.values())

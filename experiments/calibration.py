@@ -13,7 +13,9 @@ receiver distances from 0.2 r to 8 r; a constant environment L = 1 and no lights
   hemisphere while its cap stays above the horizon (true on the whole grid here), so
   ``E = π (1 − sin²α cos β)``.
 
-Each scene is rendered with the paper's sampling shell (R = r) and with ``Method(shell=1.5)``.
+Each scene is rendered with the paper's setting and, as extra rows, with ``Method(shell=1.5)`` (BSV
+sampled on a shell of 1.5 r, outside the bounding sphere), ``Method(model="sphere")`` (the
+concentric-sphere rescaling instead of the square-silhouette f_k) and a 24×40 BSV grid.
 Errors are relative to the mean exact irradiance (DESIGN.md §5).
 
 Usage (repository root, project environment active)::
@@ -70,9 +72,17 @@ def receivers():
     )
 
 
-def scene_with(occluder, shell: float = 1.0) -> Scene:
+# extra rows: (suffix, Method options) beside the paper's setting
+VARIANTS = [
+    ("_shell1.5", {"shell": 1.5}),
+    ("_sphere_model", {"model": "sphere"}),
+    ("_bsv24x40", {"bsv_grid": (24, 40)}),
+]
+
+
+def scene_with(occluder, **method) -> Scene:
     return Scene(
-        method=Method(shell=shell),
+        method=Method(**method),
         receivers=receivers(),
         occluders=(occluder,),
         lights=(),
@@ -174,10 +184,18 @@ def main() -> None:
     sphere = SphereOccluder(jnp.asarray(SPHERE_CENTER, jnp.float32), jnp.asarray(SPHERE_RADIUS, jnp.float32))
     pts = np.asarray(receivers().points)
     exact_s = np.repeat(sphere_exact(pts)[:, None], 3, axis=1)
-    for shell in (1.0, 1.5):
-        res, first, warm = timed_render(scene_with(sphere, shell), "bsv")
-        name = "sphere_bsv" if shell == 1.0 else "sphere_bsv_shell1.5"
-        rows.append(row(name, np.asarray(res.irradiance), exact_s, shell=shell, first_ms=first, warm_ms=warm))
+    for suffix, opts in [("", {}), *VARIANTS]:
+        res, first, warm = timed_render(scene_with(sphere, **opts), "bsv")
+        rows.append(
+            row(
+                "sphere_bsv" + suffix,
+                np.asarray(res.irradiance),
+                exact_s,
+                method=opts,
+                first_ms=first,
+                warm_ms=warm,
+            )
+        )
     res, first, warm = timed_render(scene_with(sphere), "analytic")
     rows.append(row("sphere_analytic", np.asarray(res.irradiance), exact_s, first_ms=first, warm_ms=warm))
 
@@ -187,11 +205,18 @@ def main() -> None:
     ref_s = time.perf_counter() - t0
     exact_b = np.asarray(ref.irradiance, np.float64)
     stderr = np.asarray(ref.irradiance_stderr, np.float64)
-    for shell in (1.0, 1.5):
-        res, first, warm = timed_render(scene_with(bunny, shell))
-        name = "bunny" if shell == 1.0 else "bunny_shell1.5"
+    for suffix, opts in [("", {}), *VARIANTS]:
+        res, first, warm = timed_render(scene_with(bunny, **opts))
         rows.append(
-            row(name, np.asarray(res.irradiance), exact_b, stderr, shell=shell, first_ms=first, warm_ms=warm)
+            row(
+                "bunny" + suffix,
+                np.asarray(res.irradiance),
+                exact_b,
+                stderr,
+                method=opts,
+                first_ms=first,
+                warm_ms=warm,
+            )
         )
     # the reference itself against the unoccluded value far from the bunny (sanity: exactly π there)
     far = np.linalg.norm(pts[:, [0, 2]], axis=1) > 1.9
