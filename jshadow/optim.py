@@ -179,13 +179,18 @@ def fit(
         raise ValueError(f"steps must be a positive integer, got {steps}")
     params = [jnp.asarray(p, dtype) for p in init]
     opt = optimizer or optax.adam(learning_rate)
-    state = opt.init(params)
+    with jax.numpy_dtype_promotion("standard"):
+        state = opt.init(params)
 
     @eqx.filter_jit
     def step(params, state):
         loss, g = jax.value_and_grad(loss_fn)(params)
-        updates, state = opt.update(g, state, params)
-        return optax.apply_updates(params, updates), state, loss
+        # optax mixes its int32 step count with float decay rates (Adam's bias correction): allow
+        # the standard promotion there even when the caller runs with strict dtype promotion
+        with jax.numpy_dtype_promotion("standard"):
+            updates, state = opt.update(g, state, params)
+            params = optax.apply_updates(params, updates)
+        return params, state, loss
 
     result = FitResult(params=params)
     it = range(steps)
