@@ -92,3 +92,18 @@ def test_bad_invocations_exit_2(tmp_path, scene_file, capsys, args, needle):
     assert main(args) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and needle in err[0]
+
+
+def test_fit_writes_its_outputs_and_reduces_the_loss(tmp_path):
+    cfg = tmp_path / "fit.toml"
+    cfg.write_text(
+        SCENE.replace("resolution = [9, 7]", "resolution = [8, 8]")
+        + '\n[fit]\nparams = ["light.0.center"]\ntarget_values = [[0.6, 3.0, 0.5]]\n'
+        + "steps = 8\nlearning_rate = 0.05\n"
+    )
+    assert main(["fit", str(cfg), "--out", str(tmp_path / "f")]) == 0
+    rep = json.loads((tmp_path / "f" / "fit.json").read_text())
+    assert set(rep["params"]) == {"light.0.center"} and len(rep["loss"]) == 8
+    assert rep["loss"][-1] < rep["loss"][0]
+    for name in ("loss.png", "before.png", "after.png", "target.png"):
+        assert (tmp_path / "f" / name).stat().st_size > 1000
