@@ -1,4 +1,4 @@
-"""Command line: ``jshadow render | reference | compare | fit``.
+"""Command line: ``jshadow render | reference | compare | bench | fit``.
 
 Bad input (config errors, missing files, invalid numbers) ends with exit status 2 and one line on
 stderr naming the key or file; nothing is written in that case. Output files are written under a
@@ -255,6 +255,55 @@ def cmd_compare(args) -> int:
     return 0
 
 
+def cmd_bench(args) -> int:
+    """Warm per-stage timings of the shadow-field renderer, and its error against the reference."""
+    import jax
+
+    from .compare import frame_errors
+    from .reference import reference
+    from .runner import Renderer
+
+    if args.frames < 1 or (args.spp is not None and args.spp < 1):
+        raise UsageError("--frames and --spp must be positive integers")
+    _, scene = _load(args.config)
+    rend = Renderer(scene)
+    t0 = time.perf_counter()
+    res, _ = rend.frame(0)
+    first = time.perf_counter() - t0
+    rows = [rend.frame(i % scene.n_frames)[1] for i in range(1, args.frames + 1)]
+    med = {k: float(np.median([r[k] for r in rows])) for k in rows[0]}
+    out = {
+        "config": args.config,
+        "device": str(jax.devices()[0]),
+        "receivers": int(res.points.shape[0]),
+        "compile_s": max(first - med["total_ms"] / 1e3, 0.0),
+        "median_ms": med,
+        "fps": 1e3 / med["total_ms"],
+    }
+    print(f"{'stage':<12}{'median ms':>12}")
+    for k, v in med.items():
+        print(f"{k:<12}{v:>12.2f}")
+    print(f"receivers {out['receivers']}, {out['fps']:.1f} frames/s, compile {out['compile_s']:.1f} s")
+    if args.spp:
+        t0 = time.perf_counter()
+        ref = reference(scene, args.spp, jax.random.PRNGKey(args.seed), frame=0, progress=True)
+        ref_s = time.perf_counter() - t0
+        err = frame_errors(res.irradiance, ref.irradiance)
+        se = float(np.sqrt(np.mean(np.asarray(ref.irradiance_stderr, np.float64) ** 2)))
+        err["ref_stderr_ratio"] = se / err["rmse"] if err["rmse"] > 0 else float("inf")
+        out["reference"] = {"spp": args.spp, "seconds": ref_s, **err}
+        print(
+            f"vs reference ({args.spp} spp, {ref_s:.1f} s): relative RMSE {err['rel_rmse']:.2%}, "
+            f"max error {err['max_rel_err']:.2%} of the mean; reference stderr / RMSE "
+            f"{err['ref_stderr_ratio']:.2f} (want <= 0.1)"
+        )
+    if args.json:
+        path = pathlib.Path(args.json)
+        _make_out(str(path.parent) if str(path.parent) else ".")
+        _save_json(path, out)
+    return 0
+
+
 def cmd_fit(args) -> int:
     import jax.numpy as jnp
 
@@ -401,6 +450,14 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("b")
     c.add_argument("--out", default=None, help="PNG of the difference (frame 0)")
     c.set_defaults(func=cmd_compare)
+
+    b = sub.add_parser("bench", help="per-stage timings, and error against the reference with --spp")
+    b.add_argument("config")
+    b.add_argument("--frames", type=int, default=10, help="warm frames timed (after a first, compiling one)")
+    b.add_argument("--spp", type=int, default=None, help="also compute the reference at this spp (frame 0)")
+    b.add_argument("--seed", type=int, default=0)
+    b.add_argument("--json", default=None, help="write the figures to this JSON file")
+    b.set_defaults(func=cmd_bench)
 
     f = sub.add_parser("fit", help="fit config parameters to a target shadow ([fit] table)")
     f.add_argument("config")

@@ -107,3 +107,12 @@ def test_fit_writes_its_outputs_and_reduces_the_loss(tmp_path):
     assert rep["loss"][-1] < rep["loss"][0]
     for name in ("loss.png", "before.png", "after.png", "target.png"):
         assert (tmp_path / "f" / name).stat().st_size > 1000
+
+
+def test_bench_prints_stages_and_error_and_writes_json(tmp_path, scene_file, capsys):
+    out = tmp_path / "b" / "bench.json"
+    assert main(["bench", str(scene_file), "--frames", "2", "--spp", "64", "--json", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "field_ms" in text and "relative RMSE" in text
+    rep = json.loads(out.read_text())
+    assert rep["median_ms"]["total_ms"] > 0 and 0 < rep["reference"]["rel_rmse"] < 1
