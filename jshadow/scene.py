@@ -150,17 +150,33 @@ def _slots(occ: MeshOccluder, faces: np.ndarray, m) -> int | None:
 def occluder_visibilities(
     scene: Scene, bsvs: tuple[BSV | None, ...], points: Float[Array, "N 3"]
 ) -> tuple[list, list]:
-    """Visibility SH (N, n²) and distance (N,) from each receiver to each occluder's centre."""
+    """Visibility SH (N, n²) and distance (N,) from each receiver to each occluder's centre.
+
+    BSV occluders whose coefficient arrays have the same shape are evaluated together under one
+    ``vmap`` (one compiled computation however many occluders there are).
+    """
     n = scene.method.sh_bands
     table = occlusion_table(scene) if any(b is not None for b in bsvs) else None
-    vis, dist = [], []
-    for occ, b in zip(scene.occluders, bsvs, strict=True):
+    vis: list = [None] * len(bsvs)
+    dist: list = [None] * len(bsvs)
+    groups: dict = {}
+    for i, (occ, b) in enumerate(zip(scene.occluders, bsvs, strict=True)):
         if b is None:
-            vis.append(sphere_visibility_sh(occ.center, occ.radius, points, n))
-            dist.append(jnp.linalg.norm(points - occ.center, axis=-1))
+            vis[i] = sphere_visibility_sh(occ.center, occ.radius, points, n)
+            dist[i] = jnp.linalg.norm(points - occ.center, axis=-1)
         else:
-            vis.append(bsv_visibility_sh(b, table, points))
-            dist.append(jnp.linalg.norm(points - b.center, axis=-1))
+            groups.setdefault(b.coeffs.shape, []).append(i)
+    for idx in groups.values():
+        if len(idx) == 1:
+            b = bsvs[idx[0]]
+            vs, ds = bsv_visibility_sh(b, table, points), jnp.linalg.norm(points - b.center, axis=-1)
+            vis[idx[0]], dist[idx[0]] = vs, ds
+            continue
+        stacked = jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *[bsvs[i] for i in idx])
+        vs = jax.vmap(lambda b: bsv_visibility_sh(b, table, points))(stacked)
+        ds = jnp.linalg.norm(points[None] - stacked.center[:, None, :], axis=-1)
+        for j, i in enumerate(idx):
+            vis[i], dist[i] = vs[j], ds[j]
     return vis, dist
 
 

@@ -173,3 +173,22 @@ def test_outputs_finite_with_receivers_on_and_inside_occluders():
     )(light.center)
     assert np.all(np.isfinite(np.asarray(g)))
     assert math.isfinite(float(out.irradiance.sum()))
+
+
+def test_grouped_bsv_occluders_equal_one_by_one():
+    # several BSV occluders of the same shape are evaluated under one vmap; it must equal the loop
+    from jshadow.scene import occluder_visibilities, scene_bsvs
+
+    occ = tuple(
+        SphereOccluder(f32(x, 1.0 + 0.2 * x, -x), jnp.float32(0.3 + 0.1 * x)) for x in (-1.0, 0.0, 1.0)
+    )
+    scene = Scene(SMALL, plane(n=6), occ, (), Environment(f32(1, 1, 1)))
+    bsvs = scene_bsvs(scene, 0.0, sphere_path="bsv")
+    pts = scene.receivers.points
+    vis, dist = occluder_visibilities(scene, bsvs, pts)
+    table = occlusion_table(scene)
+    for v, d, b in zip(vis, dist, bsvs, strict=True):
+        np.testing.assert_allclose(v, bsv_visibility_sh(b, table, pts), rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(
+            d, np.linalg.norm(np.asarray(pts) - np.asarray(b.center), axis=-1), rtol=1e-6
+        )
