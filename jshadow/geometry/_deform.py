@@ -110,6 +110,30 @@ def _bend_factors(theta):
     return jnp.where(small, sinc_m1_series, sinc_m1_direct), jnp.where(small, g_series, g_direct)
 
 
+class _AxialDeformation(eqx.Module):
+    """Shared fields of the deformations that act along one axis: the amount at t = 0 and t = 1
+    (linear in between), the axis (0, 1, 2 or "x", "y", "z") and the fixed plane's coordinate along
+    it. Subclasses define ``_apply(x, t)``."""
+
+    amount_start: Float[Array, ""]
+    amount_end: Float[Array, ""]
+    axis: int = eqx.field(static=True)
+    origin: float = eqx.field(static=True)
+
+    def __init__(self, amount_start, amount_end=None, axis="y", origin: float = 0.0):
+        self.amount_start = jnp.asarray(amount_start)
+        self.amount_end = jnp.asarray(amount_start if amount_end is None else amount_end)
+        self.axis = _axis_index(axis, f"{type(self).__name__} axis")
+        self.origin = float(origin)
+
+    def __call__(self, x: Float[Array, "... V 3"], t=0.0) -> Float[Array, "... V 3"]:
+        x = _check_points(x)
+        return self._apply(x, jnp.asarray(t, x.dtype))
+
+    def _apply(self, x, t):
+        raise TypeError(f"{type(self).__name__} must define _apply(x, t)")
+
+
 class Bend(eqx.Module):
     """Bend the ``axis`` (the spine, default y) into a circular arc curving toward ``toward`` (default x).
 
@@ -157,28 +181,13 @@ class Bend(eqx.Module):
         return _assemble(x, self.axis, {self.axis: h_new, self.toward: u_new})
 
 
-class Twist(eqx.Module):
+class Twist(_AxialDeformation):
     """Rotate each slice perpendicular to ``axis`` (default y) by ``amount · (x_axis − origin)`` radians.
 
     ``amount`` is the twist rate in radians per unit length (right-handed about +axis); 0 is the
     identity. Distances to the axis and heights are preserved (an isometry of each slice), so the
     volume is preserved exactly.
     """
-
-    amount_start: Float[Array, ""]
-    amount_end: Float[Array, ""]
-    axis: int = eqx.field(static=True)
-    origin: float = eqx.field(static=True)
-
-    def __init__(self, amount_start, amount_end=None, axis="y", origin: float = 0.0):
-        self.amount_start = jnp.asarray(amount_start)
-        self.amount_end = jnp.asarray(amount_start if amount_end is None else amount_end)
-        self.axis = _axis_index(axis, "Twist axis")
-        self.origin = float(origin)
-
-    def __call__(self, x: Float[Array, "... V 3"], t=0.0) -> Float[Array, "... V 3"]:
-        x = _check_points(x)
-        return self._apply(x, jnp.asarray(t, x.dtype))
 
     @eqx.filter_jit
     def _apply(self, x, t):
@@ -192,28 +201,13 @@ class Twist(eqx.Module):
         return _assemble(x, self.axis, {bi: b_new, ci: c_new})
 
 
-class Taper(eqx.Module):
+class Taper(_AxialDeformation):
     """Scale the two coordinates perpendicular to ``axis`` by ``1 + amount · (x_axis − origin)``.
 
     ``amount`` is the relative change of width per unit length along the axis (> 0 widens toward
     +axis); 0 is the identity. The factor becomes negative (the shape inverts) where
     amount · h < −1: keep |amount| < 1 for a unit-sphere-normalised mesh.
     """
-
-    amount_start: Float[Array, ""]
-    amount_end: Float[Array, ""]
-    axis: int = eqx.field(static=True)
-    origin: float = eqx.field(static=True)
-
-    def __init__(self, amount_start, amount_end=None, axis="y", origin: float = 0.0):
-        self.amount_start = jnp.asarray(amount_start)
-        self.amount_end = jnp.asarray(amount_start if amount_end is None else amount_end)
-        self.axis = _axis_index(axis, "Taper axis")
-        self.origin = float(origin)
-
-    def __call__(self, x: Float[Array, "... V 3"], t=0.0) -> Float[Array, "... V 3"]:
-        x = _check_points(x)
-        return self._apply(x, jnp.asarray(t, x.dtype))
 
     @eqx.filter_jit
     def _apply(self, x, t):
@@ -239,28 +233,13 @@ def _squash(x, s_m1, ai: int, origin: float):
     )
 
 
-class SquashStretch(eqx.Module):
+class SquashStretch(_AxialDeformation):
     """Volume-preserving stretch along ``axis`` by s = 1 + amount, squash across it by 1/√s.
 
     ``amount`` > 0 stretches (taller and thinner), −1 < amount < 0 squashes; 0 is the identity. The
     Jacobian determinant is s · (1/√s)² = 1, so volumes are preserved exactly (not just to first
     order). Amounts ≤ −1 are clamped to s = eps (no NaN); :func:`make_deformation` rejects them.
     """
-
-    amount_start: Float[Array, ""]
-    amount_end: Float[Array, ""]
-    axis: int = eqx.field(static=True)
-    origin: float = eqx.field(static=True)
-
-    def __init__(self, amount_start, amount_end=None, axis="y", origin: float = 0.0):
-        self.amount_start = jnp.asarray(amount_start)
-        self.amount_end = jnp.asarray(amount_start if amount_end is None else amount_end)
-        self.axis = _axis_index(axis, "SquashStretch axis")
-        self.origin = float(origin)
-
-    def __call__(self, x: Float[Array, "... V 3"], t=0.0) -> Float[Array, "... V 3"]:
-        x = _check_points(x)
-        return self._apply(x, jnp.asarray(t, x.dtype))
 
     @eqx.filter_jit
     def _apply(self, x, t):
