@@ -14,6 +14,7 @@ import pathlib
 import sys
 import tempfile
 import time
+import warnings
 
 import numpy as np
 
@@ -70,7 +71,7 @@ def _enable_x64_if_requested(config_path: str) -> None:
     try:
         with open(config_path, "rb") as fh:
             dtype = tomllib.load(fh).get("method", {}).get("dtype")
-    except (OSError, tomllib.TOMLDecodeError, AttributeError):
+    except (OSError, ValueError, AttributeError):  # ValueError: TOML syntax, bytes that are not UTF-8
         return  # load_config reports the problem properly
     if dtype == "float64":
         import jax
@@ -418,8 +419,15 @@ def _loss_plot(path, loss):
     _atomic_write(path, lambda fh: fig.savefig(fh, format="png"))
 
 
+class _Parser(argparse.ArgumentParser):
+    """Argument errors as one line on stderr (exit status 2), like every other bad input."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="jshadow", description=__doc__.splitlines()[0])
+    p = _Parser(prog="jshadow", description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="command", required=True)
 
     r = sub.add_parser("render", help="render a scene config with shadow fields")
@@ -467,13 +475,42 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _one_line_warning(message, category, filename, lineno, file=None, line=None):
+    """Warnings (e.g. an open mesh) as one line on stderr, without the source line."""
+    print(f"jshadow: warning: {category.__name__}: {message}", file=file or sys.stderr)
+
+
+def _out_of_memory(err: BaseException) -> bool:
+    if isinstance(err, MemoryError):
+        return True
+    text = str(err)
+    return type(err).__name__ == "JaxRuntimeError" and (
+        "RESOURCE_EXHAUSTED" in text or "Out of memory" in text
+    )
+
+
 def main(argv=None) -> int:
+    """Run one command; returns the exit status (0 ok, 1 out of memory, 2 bad input)."""
     args = build_parser().parse_args(argv)
+    show = warnings.showwarning
+    warnings.showwarning = _one_line_warning
     try:
         return args.func(args)
     except UsageError as err:
         print(f"jshadow {args.command}: error: {err}", file=sys.stderr)
         return 2
+    except Exception as err:
+        if not _out_of_memory(err):
+            raise
+        first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        print(
+            f"jshadow {args.command}: error: out of memory ({first[:200]}); render in smaller pieces "
+            "with --chunk N (receivers per step)",
+            file=sys.stderr,
+        )
+        return 1
+    finally:
+        warnings.showwarning = show
 
 
 if __name__ == "__main__":

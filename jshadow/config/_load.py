@@ -307,13 +307,23 @@ def _light(t: _Table, dtype) -> LightConfig:
     )
 
 
+MAX_RECEIVERS = 2**31 - 1  # receivers are indexed with int32 (JAX's default integer)
+
+
 def _receiver(t: _Table, dtype) -> ReceiverConfig:
+    resolution = t.integers("resolution", 2, lo=1)
+    if resolution[0] * resolution[1] > MAX_RECEIVERS:
+        raise t.error(
+            "resolution",
+            f"expected at most {MAX_RECEIVERS} receivers in all (int32 indices), got "
+            f"{resolution[0]} x {resolution[1]} = {resolution[0] * resolution[1]}",
+        )
     return ReceiverConfig(
         type=t.string("type", "plane", choices=RECEIVER_TYPES),
         center=_leaf(t.vector("center", 3), dtype),
         size=_leaf(t.vector("size", 2, check="positive"), dtype),
         albedo=_leaf(t.vector("albedo", 3, [0.8, 0.8, 0.8], check="nonneg"), dtype),
-        resolution=t.integers("resolution", 2, lo=1),
+        resolution=resolution,
         self_shadow=t.boolean("self_shadow", False),
     )
 

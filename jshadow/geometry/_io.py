@@ -34,6 +34,28 @@ def merge_duplicate_vertices(vertices: np.ndarray, faces: np.ndarray) -> tuple[n
     return v[first[order]], rank[inverse][np.asarray(faces)]
 
 
+_TEXT_FORMATS = (".obj", ".off")
+
+
+def _check_text_format(name: str) -> None:
+    """OBJ and OFF are text: reject bytes that are not UTF-8 with a clear ``ValueError`` (trimesh
+    would otherwise guess an encoding, or fail with an unrelated error)."""
+    if not name.lower().endswith(_TEXT_FORMATS):
+        return
+    try:
+        with open(name, "rb") as fh:
+            data = fh.read()
+    except OSError as err:
+        raise ValueError(f"cannot read mesh file {name}: {err.strerror or err}") from None
+    try:
+        data.decode("utf-8")
+    except UnicodeDecodeError as err:
+        raise ValueError(
+            f"cannot read mesh file {name}: not a UTF-8 text file (byte 0x{data[err.start]:02x} at "
+            f"offset {err.start}); {os.path.splitext(name)[1]} meshes are text"
+        ) from None
+
+
 def load_mesh(path: str | os.PathLike, dtype=None) -> Mesh:
     """Load a triangle mesh with trimesh and check it.
 
@@ -53,6 +75,7 @@ def load_mesh(path: str | os.PathLike, dtype=None) -> Mesh:
     name = os.fspath(path)
     if not os.path.isfile(name):
         raise ValueError(f"mesh file not found: {name}")
+    _check_text_format(name)
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # trimesh's own chatter about file details
