@@ -71,6 +71,16 @@ def scene_dict(
     return d
 
 
+def unit_mesh(model: str, dtype=jnp.float32):
+    """(vertices (V, 3), faces (F, 3)) of a :data:`MODELS` mesh normalised to its unit bounding
+    sphere at the origin (AABB centre, radius to the farthest vertex)."""
+    from jshadow.geometry import egg, load_mesh, normalize_to_unit_sphere
+
+    spec = MODELS[model]
+    mesh = load_mesh(spec["file"], dtype=dtype) if "file" in spec else egg(3, spec["stretch"], dtype=dtype)
+    return normalize_to_unit_sphere(mesh.vertices), jnp.asarray(mesh.faces, jnp.int32)
+
+
 def make_scene(d: dict):
     """:func:`jshadow.build_scene` of a config dict (paths are absolute)."""
     return build_scene(config_from_dict(d, source="<experiment>", root=ROOT))
