@@ -39,9 +39,17 @@ __all__ = [
 ]
 
 
+SHADINGS = ("product", "ratio")
+
+
 @dataclass(frozen=True)
 class Method:
-    """Static options of the shadow-field method (the ``[method]`` table). Validated on creation."""
+    """Static options of the shadow-field method (the ``[method]`` table). Validated on creation.
+
+    ``bsv_bands`` > ``sh_bands`` samples and extrapolates visibility with more bands than the
+    lighting and truncates after M_k (so the warp does not act on an already-truncated function).
+    ``shading="ratio"`` makes unoccluded lighting exact (:func:`jshadow.scene.combine`).
+    """
 
     sh_bands: int = 4  # n: n² coefficients
     bsv_grid: tuple[int, int] = (12, 20)  # θ × φ sample points on the bounding sphere
@@ -52,6 +60,13 @@ class Method:
     radial_samples: int = 16  # number of tabulated M_k (Zhou et al. 2005 use 16)
     d_range: tuple[float, float] = (0.2, 8.0)  # tabulated receiver distances, in shell radii
     bsv_method: str = "auto"  # "auto" | "brute" | "edgescan"
+    bsv_bands: int | None = None  # bands of the BSV and M_k (None: sh_bands); truncated after M_k
+    shading: str = "product"  # "product" (Zhou et al. 2005) | "ratio" (exact unoccluded × SH ratio)
+
+    @property
+    def field_bands(self) -> int:
+        """Bands in which visibility is sampled and extrapolated (``bsv_bands`` or ``sh_bands``)."""
+        return self.sh_bands if self.bsv_bands is None else self.bsv_bands
 
     def __post_init__(self):
         if not (1 <= self.sh_bands <= 8):
@@ -70,6 +85,12 @@ class Method:
             raise ValueError(f"method.radial_samples must be >= 2, got {self.radial_samples}")
         if not (0 < self.d_range[0] < self.d_range[1]):
             raise ValueError(f"method.d_range must be two increasing positive distances, got {self.d_range}")
+        if self.bsv_bands is not None and not (self.sh_bands <= self.bsv_bands <= 8):
+            raise ValueError(
+                f"method.bsv_bands must be in sh_bands..8 = {self.sh_bands}..8, got {self.bsv_bands}"
+            )
+        if self.shading not in SHADINGS:
+            raise ValueError(f"method.shading must be one of {SHADINGS}, got {self.shading!r}")
         if self.bsv_method not in ("auto", "brute", "edgescan"):
             raise ValueError(f"method.bsv_method must be auto, brute or edgescan, got {self.bsv_method!r}")
 

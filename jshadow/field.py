@@ -57,14 +57,18 @@ def interpolate_bsv(coeffs: Float[Array, "T P n2"], theta, phi) -> Float[Array, 
     return (1 - wa) * ((1 - wb) * c00 + wb * c01) + wa * ((1 - wb) * c10 + wb * c11)
 
 
-def bsv_visibility_sh(bsv: BSV, table: MkTable, points: Float[Array, "... 3"]) -> Float[Array, "... n2"]:
+def bsv_visibility_sh(
+    bsv: BSV, table: MkTable, points: Float[Array, "... 3"], bands: int | None = None
+) -> Float[Array, "... n2"]:
     """World-frame visibility SH of one BSV occluder at receiver points (..., 3) → (..., n²).
 
     ``table`` is an occlusion-kind M_k table whose distances are in units of the sampling-shell
-    radius ``bsv.shell_radius`` (k = R/d). n is taken from the BSV coefficients; the table must have
-    at least as many bands.
+    radius ``bsv.shell_radius`` (k = R/d). The BSV's bands are taken from its coefficients; the
+    table must have at least as many. ``bands`` (default: the BSV's) truncates the result after
+    M_k and before the rotation (rotations do not mix bands, so this equals truncating at the
+    end): a BSV sampled with more bands than the lighting is extrapolated at full resolution.
     """
-    n = sh.sh_bands_of(bsv.coeffs.shape[-1])
+    n = sh.sh_bands_of(bsv.coeffs.shape[-1]) if bands is None else int(bands)
     rel = points - bsv.center
     d = safe_norm(rel)
     u = safe_normalize(rel)
@@ -73,7 +77,7 @@ def bsv_visibility_sh(bsv: BSV, table: MkTable, points: Float[Array, "... 3"]) -
     s_r = interpolate_bsv(bsv.coeffs, theta, phi)
     big = jnp.asarray(1e6, d.dtype)
     k = jnp.where(d > 0, bsv.shell_radius / jnp.where(d > 0, d, 1.0), big)
-    s_d = mk_apply(table, k, s_r)
+    s_d = mk_apply(table, k, s_r)[..., : n * n]
     _, frame = bsv_frames(theta, phi)
     s_w = sh.rotate(s_d, frame)
     return jnp.where(mk_in_range(table, k)[..., None], s_w, unit_visibility(d.shape, n, s_w.dtype))

@@ -33,7 +33,14 @@ from . import sh
 from .entities import MeshOccluder, Scene, SphereOccluder, frame_time, receivers_at_time
 from .field import bsv_visibility_sh, sphere_visibility_sh, unit_visibility
 from .geometry import bounding_sphere
-from .lights import environment_sh, sphere_light_sh
+from .lights import (
+    IrradianceMap,
+    environment_irradiance,
+    environment_irradiance_map,
+    environment_sh,
+    sphere_light_irradiance,
+    sphere_light_sh,
+)
 from .scaling import MkTable, mk_table
 from .visibility import BSV, bsv_mesh, bsv_mesh_diff, bsv_silhouette_counts, bsv_sphere
 
@@ -44,6 +51,8 @@ __all__ = [
     "occluder_bsv",
     "mesh_bsv",
     "occluder_visibilities",
+    "Lighting",
+    "scene_lighting",
     "combine",
     "render",
     "render_at",
@@ -68,7 +77,7 @@ def _table(n, num, d_min, d_max, model, dtype) -> MkTable:
 def occlusion_table(scene: Scene) -> MkTable:
     """The occlusion M_k table of the scene's method (built once per method, then cached)."""
     m = scene.method
-    return _table(m.sh_bands, m.radial_samples, m.d_range[0], m.d_range[1], m.model, scene.dtype)
+    return _table(m.field_bands, m.radial_samples, m.d_range[0], m.d_range[1], m.model, scene.dtype)
 
 
 def scene_bsvs(scene: Scene, t, sphere_path: str = "analytic") -> tuple[BSV | None, ...]:
@@ -90,7 +99,7 @@ def occluder_bsv(
             return None
         if sphere_path != "bsv":
             raise ValueError(f"sphere_path must be 'analytic' or 'bsv', got {sphere_path!r}")
-        return bsv_sphere(occ.center, occ.radius, n=m.sh_bands, grid=m.bsv_grid, shell=m.shell)
+        return bsv_sphere(occ.center, occ.radius, n=m.field_bands, grid=m.bsv_grid, shell=m.shell)
     if isinstance(occ, MeshOccluder):
         return mesh_bsv(occ, t, scene, differentiable)
     raise TypeError(f"unknown occluder type {type(occ).__name__}")
@@ -109,7 +118,7 @@ def mesh_bsv(occ: MeshOccluder, t, scene: Scene, differentiable: bool = True) ->
     """
     m = scene.method
     v = occ.vertices(t)
-    kw = dict(n=m.sh_bands, grid=m.bsv_grid, directions=m.directions, shell=m.shell)
+    kw = dict(n=m.field_bands, grid=m.bsv_grid, directions=m.directions, shell=m.shell)
     faces = _concrete(occ.faces)
     if not differentiable or faces is None:
         return bsv_mesh(v, occ.faces, method=m.bsv_method, **kw)
@@ -169,11 +178,11 @@ def occluder_visibilities(
     for idx in groups.values():
         if len(idx) == 1:
             b = bsvs[idx[0]]
-            vs, ds = bsv_visibility_sh(b, table, points), jnp.linalg.norm(points - b.center, axis=-1)
+            vs, ds = bsv_visibility_sh(b, table, points, n), jnp.linalg.norm(points - b.center, axis=-1)
             vis[idx[0]], dist[idx[0]] = vs, ds
             continue
         stacked = jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *[bsvs[i] for i in idx])
-        vs = jax.vmap(lambda b: bsv_visibility_sh(b, table, points))(stacked)
+        vs = jax.vmap(lambda b: bsv_visibility_sh(b, table, points, n))(stacked)
         ds = jnp.linalg.norm(points[None] - stacked.center[:, None, :], axis=-1)
         for j, i in enumerate(idx):
             vis[i], dist[i] = vs[j], ds[j]
@@ -197,12 +206,48 @@ def _product(vs: list) -> Float[Array, "N n2"] | None:
     return acc
 
 
+class Lighting(eqx.Module):
+    """Per-scene lighting constants of :func:`combine` (computed once, reused for every frame).
+
+    ``env_sh``: the environment's n-band SH (n², 3); ``env_map``: its unoccluded irradiance over
+    normals (only for ``shading="ratio"``). Both None without an environment.
+    """
+
+    env_sh: Float[Array, "n2 3"] | None
+    env_map: IrradianceMap | None
+
+
+def scene_lighting(scene: Scene) -> Lighting:
+    """The lighting constants of the scene's environment (see :class:`Lighting`)."""
+    env = scene.environment
+    if env is None:
+        return Lighting(env_sh=None, env_map=None)
+    n = scene.method.sh_bands
+    env_sh = environment_sh(env, n).astype(scene.dtype)
+    env_map = environment_irradiance_map(env) if scene.method.shading == "ratio" else None
+    return Lighting(env_sh=env_sh, env_map=env_map)
+
+
+def _shadow_ratio(occluded, unoccluded, exact):
+    """Exact unoccluded irradiance times the SH estimate's occluded/unoccluded ratio, in [0, 1].
+
+    Where the n-band unoccluded estimate is not a usable denominator (below a quarter of the exact
+    value: a light at the horizon, a dark part of the sky) the SH shadow is subtracted instead;
+    either way the result lies in [0, exact].
+    """
+    ok = unoccluded > 0.25 * exact
+    ratio = jnp.clip(occluded / jnp.where(ok, unoccluded, 1.0), 0.0, 1.0)
+    shifted = jnp.clip(exact + occluded - unoccluded, 0.0, jnp.maximum(exact, 0.0))
+    return jnp.where(ok, exact * ratio, shifted)
+
+
 def combine(
     scene: Scene,
     points: Float[Array, "N 3"],
     normals: Float[Array, "N 3"],
     vis: list,
     dist: list,
+    lighting: Lighting | None = None,
 ) -> Float[Array, "N 3"]:
     """Irradiance (N, 3) from the occluders' visibilities and the scene's lights.
 
@@ -210,33 +255,54 @@ def combine(
     constant matrix of "multiply by L_env" (no per-receiver triple product); a sphere light's
     radiance is a scalar cap times a colour, so its product with the transfer is one scalar triple
     product; visibilities multiply pairwise (one triple product per extra occluder).
+
+    ``method.shading``: "product" is Zhou et al. 2005 (every term an n-band SH product). "ratio"
+    multiplies the *exact* unoccluded irradiance of each light (closed form for sphere lights, a
+    tabulated irradiance map for the environment) by the SH estimate's occluded/unoccluded ratio,
+    clamped to [0, 1]: unoccluded receivers are exact, no receiver is brighter than unoccluded, and
+    the n-band truncation of sharp lighting cancels in the ratio. ``lighting`` (from
+    :func:`scene_lighting`) is computed here when not given.
     """
     n = scene.method.sh_bands
+    ratio = scene.method.shading == "ratio"
     dtype = points.dtype
+    if lighting is None:
+        lighting = scene_lighting(scene)
     transfer = sh.clamped_cosine(normals, n)  # (N, n²): max(0, n·ω)
     e = jnp.zeros((points.shape[0], 3), dtype)
 
     if scene.environment is not None:
-        l_env = environment_sh(scene.environment, n).astype(dtype)  # (n², 3)
+        l_env = lighting.env_sh.astype(dtype)  # (n², 3)
         v_all = _product(vis)
+        exact = environment_irradiance(lighting.env_map, normals).astype(dtype) if ratio else None
         if v_all is None:
-            e = e + transfer @ l_env  # double product, exact
+            e = e + (exact if ratio else transfer @ l_env)  # double product, exact for n bands
         else:
             m_env = sh.product_matrix(l_env.T)  # (3, n², n²): "multiply by L_env", per channel
             vm = jnp.einsum("ni,cik->nck", v_all, m_env)  # (N, 3, n²)
-            e = e + jnp.einsum("nck,nk->nc", vm, transfer)
+            occluded = jnp.einsum("nck,nk->nc", vm, transfer)
+            e = e + (_shadow_ratio(occluded, transfer @ l_env, exact) if ratio else occluded)
 
     for light in scene.lights:
         one = jnp.ones((1,), dtype)
+        if ratio:
+            exact = sphere_light_irradiance(light.center, light.radius, one, points, normals)
+        if ratio and not vis:
+            e = e + exact * light.radiance
+            continue
         cap = sphere_light_sh(light.center, light.radius, one, points, n)[..., 0]  # (N, n²)
+        unoccluded = jnp.sum(transfer * cap, -1, keepdims=True)
         if not vis:
-            e = e + jnp.sum(transfer * cap, -1, keepdims=True) * light.radiance
+            e = e + unoccluded * light.radiance
             continue
         d_l = jnp.linalg.norm(points - light.center, axis=-1)
         unit = unit_visibility((points.shape[0],), n, dtype)
         near = [jnp.where((dj < d_l)[:, None], vj, unit) for vj, dj in zip(vis, dist, strict=True)]
         lt = sh.sh_product(transfer, cap)  # (N, n²)
-        e = e + jnp.sum(_product(near) * lt, -1, keepdims=True) * light.radiance
+        occluded = jnp.sum(_product(near) * lt, -1, keepdims=True)
+        if ratio:
+            occluded = _shadow_ratio(occluded, unoccluded, exact)
+        e = e + occluded * light.radiance
     return e
 
 

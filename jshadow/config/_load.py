@@ -28,6 +28,7 @@ from ._schema import (
     MODELS,
     OCCLUDER_TYPES,
     RECEIVER_TYPES,
+    SHADINGS,
     AnimationConfig,
     Config,
     DeformConfig,
@@ -180,6 +181,8 @@ _METHOD_KEYS = (
     "radial_samples",
     "d_range",
     "bsv_method",
+    "bsv_bands",
+    "shading",
 )
 
 
@@ -197,6 +200,8 @@ def _method(t: _Table) -> MethodConfig:
         radial_samples=t.integer("radial_samples", 16, lo=2),
         d_range=d_range,
         bsv_method=t.string("bsv_method", "auto", choices=("auto", "brute", "edgescan")),
+        bsv_bands=t.integer("bsv_bands", 4, lo=1, hi=8) if t.has("bsv_bands") else None,
+        shading=t.string("shading", "product", choices=SHADINGS),
     )
     try:
         return MethodConfig(**cfg)

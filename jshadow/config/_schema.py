@@ -38,6 +38,7 @@ __all__ = [
     "LIGHT_TYPES",
     "RECEIVER_TYPES",
     "MODELS",
+    "SHADINGS",
 ]
 
 ENVIRONMENT_TYPES = ("constant", "hdr", "sky")
@@ -46,6 +47,7 @@ MESH_SHAPES = ("egg", "icosphere")
 LIGHT_TYPES = ("sphere",)
 RECEIVER_TYPES = ("plane",)
 MODELS = ("paper", "sphere")
+SHADINGS = ("product", "ratio")
 
 
 def _check_leaf(owner: str, name: str, value, shape: tuple[int, ...] | None, positive: bool = False):
@@ -75,7 +77,9 @@ class MethodConfig(eqx.Module):
     (Zhou et al. 2005 use 12×20), ``directions`` per sample point, ``dtype`` "float32" | "float64",
     ``shell`` sampling-shell radius over bounding radius (≥ 1; 1 is the paper), ``model`` "paper" |
     "sphere" (extrapolation model), ``radial_samples`` tabulated distances, ``d_range`` their range in
-    shell radii, ``bsv_method`` "auto" | "brute" | "edgescan".
+    shell radii, ``bsv_method`` "auto" | "brute" | "edgescan", ``bsv_bands`` bands of the BSV and
+    M_k (≥ ``sh_bands``; default ``sh_bands``), ``shading`` "product" | "ratio" (see
+    :func:`jshadow.scene.combine`).
     """
 
     sh_bands: int = eqx.field(static=True, default=4)
@@ -87,6 +91,8 @@ class MethodConfig(eqx.Module):
     radial_samples: int = eqx.field(static=True, default=16)
     d_range: tuple[float, float] = eqx.field(static=True, default=(0.2, 8.0))
     bsv_method: str = eqx.field(static=True, default="auto")
+    bsv_bands: int | None = eqx.field(static=True, default=None)
+    shading: str = eqx.field(static=True, default="product")
 
     def __check_init__(self):
         if self.model not in MODELS:
@@ -108,6 +114,8 @@ class MethodConfig(eqx.Module):
                 radial_samples=self.radial_samples,
                 d_range=tuple(float(d) for d in self.d_range),
                 bsv_method=self.bsv_method,
+                bsv_bands=self.bsv_bands,
+                shading=self.shading,
             )
         except (ValueError, TypeError) as err:
             raise ConfigError(None, None, str(err)) from None
