@@ -150,9 +150,21 @@ def cmd_render(args) -> int:
     from .picture import exposure_for
     from .runner import Renderer
 
+    if args.chunk is not None and args.chunk < 1:
+        raise UsageError(f"--chunk must be a positive integer (receivers per piece), got {args.chunk}")
+    if args.devices is not None and not 1 <= args.devices <= len(jax.devices()):
+        raise UsageError(
+            f"--devices must be in 1..{len(jax.devices())} (JAX devices available here), got {args.devices}"
+        )
     _, scene = _load(args.config)
     out = _make_out(args.out)
-    renderer = Renderer(scene, sphere_path=args.sphere_path)
+    renderer = Renderer(
+        scene,
+        sphere_path=args.sphere_path,
+        chunk=args.chunk,
+        progress=scene.n_frames == 1,
+        devices=args.devices,
+    )
     frames, exposure, gif = [], None, []
     n_plane = scene.receivers.points.shape[0]
     t_start = time.perf_counter()
@@ -176,6 +188,8 @@ def cmd_render(args) -> int:
     summary = {
         "device": str(jax.devices()[0]),
         "receivers": int(np.asarray(res.points).shape[0]),
+        "receivers_per_piece": renderer.piece_size(int(np.asarray(res.points).shape[0])),
+        "devices": 1 if renderer.mesh is None else int(renderer.mesh.devices.size),
         "frames": len(frames),
         "first_frame_ms": frames[0].get("first_call", frames[0])["total_ms"],
         "median_ms": {
@@ -442,6 +456,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     r.add_argument("--exposure", type=float, default=None, help="fixed exposure for the pictures")
     r.add_argument("--no-warm", action="store_true", help="single frame: skip the warm re-run")
+    r.add_argument(
+        "--chunk",
+        type=int,
+        default=None,
+        help="receivers evaluated per step (default 131072); lower it to bound memory",
+    )
+    r.add_argument("--devices", type=int, default=None, help="shard the receivers over this many JAX devices")
     r.set_defaults(func=cmd_render)
 
     q = sub.add_parser("reference", help="Monte Carlo ground truth for a scene config")

@@ -1,26 +1,43 @@
-"""Frame-by-frame rendering with reuse and per-stage timings (used by the CLI and benchmarks).
+"""Frame-by-frame rendering with reuse, per-stage timings, bounded memory and several devices.
 
 :func:`jshadow.scene.render` is the pure, differentiable function. :class:`Renderer` runs the same
-computation as three separately compiled stages — BSV sampling, field evaluation, combination — so
+computation as separately compiled stages — BSV sampling, field evaluation, combination — so
 that each can be timed, and skips work the animation does not need: an occluder whose shape does not
 change over time (no deformation, or a deformation whose amount is the same at every frame) has its
 BSV computed once and reused for every frame.
+
+Memory: the field and combination stages materialise per-receiver arrays (visibility SH of every
+occluder, rotation blocks, products), so a frame with more than ``chunk`` receivers is evaluated in
+pieces of exactly ``chunk`` receivers (the last one padded by repeating its last receiver): one
+compilation serves every piece and the peak memory of those stages is bounded by ``chunk``, not by
+the number of receivers. Every receiver's result is computed by the same per-receiver arithmetic
+whatever the piece size; only the rounding can differ (XLA may block the small matrix products
+differently for another piece size): chunked and unchunked frames agree to a few units in the last
+place, and a given piece size is deterministic (tests check both).
+
+Devices: with ``devices`` the receivers of each piece are sharded over a one-axis device mesh
+(:mod:`jshadow._parallel`); :func:`render_frames` also spreads whole frames over devices.
 """
 
 from __future__ import annotations
 
 import math
+import threading
 import time
+from collections.abc import Sequence
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .entities import MeshOccluder, Scene, frame_time, receivers_at_time
+from . import _parallel
+from .entities import MeshOccluder, Receivers, Scene, frame_time, receivers_at_time
 from .scene import RenderResult, combine, occluder_bsv, occluder_visibilities
 
-__all__ = ["Renderer", "shape_is_static"]
+__all__ = ["Renderer", "shape_is_static", "render_frames", "DEFAULT_CHUNK"]
+
+DEFAULT_CHUNK = 2**17  # receivers per piece: 131072 (about 1 GiB of intermediates with 8 occluders)
 
 
 def shape_is_static(occ) -> bool:
@@ -38,10 +55,13 @@ def shape_is_static(occ) -> bool:
 
 
 @eqx.filter_jit
-def _fields(scene, t, bsvs):
-    points, normals = receivers_at_time(scene, t)
-    vis, dist = occluder_visibilities(scene, bsvs, points)
-    return points, normals, vis, dist
+def _receivers(scene, t):
+    return receivers_at_time(scene, t)
+
+
+@eqx.filter_jit
+def _fields(scene, bsvs, points):
+    return occluder_visibilities(scene, bsvs, points)
 
 
 @eqx.filter_jit
@@ -50,12 +70,45 @@ def _combine(scene, points, normals, vis, dist):
     return e, e * (scene.receivers.albedo / math.pi)
 
 
-class Renderer:
-    """Renders the frames of one scene, reusing BSVs of occluders whose shape does not change."""
+def _without_receivers(scene: Scene) -> Scene:
+    """The scene minus its receiver arrays (the pieces bring their own; only the albedo is used)."""
+    albedo = scene.receivers.albedo
+    empty = jnp.zeros((0, 3), albedo.dtype)
+    return eqx.tree_at(lambda s: s.receivers, scene, Receivers(points=empty, normals=empty, albedo=albedo))
 
-    def __init__(self, scene: Scene, sphere_path: str = "analytic"):
+
+class Renderer:
+    """Renders the frames of one scene, reusing BSVs of occluders whose shape does not change.
+
+    Args:
+        scene: the scene.
+        sphere_path: "analytic" (exact caps) or "bsv" for sphere occluders (see :func:`jshadow.render`).
+        chunk: receivers per piece of the field and combination stages (default
+            :data:`DEFAULT_CHUNK`); frames with at most ``chunk`` receivers are evaluated in one piece.
+            Peak memory of those stages grows linearly with ``chunk``.
+        progress: show a progress bar over the pieces of a frame (when there are several).
+        devices: None (the default device, no sharding), an integer n (the first n JAX devices) or a
+            list of devices: each piece's receivers are sharded over them (the piece size is rounded
+            up to a multiple of the device count).
+    """
+
+    def __init__(
+        self,
+        scene: Scene,
+        sphere_path: str = "analytic",
+        chunk: int | None = None,
+        progress: bool = False,
+        devices: int | Sequence[jax.Device] | None = None,
+    ):
+        chunk = DEFAULT_CHUNK if chunk is None else chunk
+        if isinstance(chunk, bool) or not isinstance(chunk, int | np.integer) or chunk < 1:
+            raise ValueError(f"chunk must be a positive integer (receivers per piece), got {chunk!r}")
         self.scene = scene
         self.sphere_path = sphere_path
+        self.chunk = int(chunk)
+        self.progress = progress
+        self.mesh = None if devices is None else _parallel.receiver_mesh(devices)
+        self._light = _without_receivers(scene)
         self._static_bsvs: dict[int, object] = {}
         self.bsv_computations = 0  # how many BSVs were actually sampled (tests check the reuse)
 
@@ -72,18 +125,101 @@ class Renderer:
                 self.bsv_computations += 1
         return tuple(out)
 
+    def piece_size(self, n: int) -> int:
+        """Receivers per piece for a frame of n receivers (a multiple of the device count)."""
+        size = min(n, self.chunk)
+        if self.mesh is not None:
+            k = self.mesh.devices.size
+            size = -(-size // k) * k
+        return size
+
     def frame(self, frame: int) -> tuple[RenderResult, dict]:
-        """Render one frame; returns the result and stage timings in milliseconds."""
+        """Render one frame; returns the result and stage timings in milliseconds.
+
+        ``field_ms`` includes placing the receivers of the frame; with several pieces the field and
+        combination times are summed over the pieces.
+        """
+        from tqdm.auto import tqdm
+
         t = frame_time(frame, self.scene.n_frames)
         t0 = time.perf_counter()
         bsvs = jax.block_until_ready(self._bsvs(t))
         t1 = time.perf_counter()
         t_arr = jnp.asarray(t, self.scene.receivers.points.dtype)  # traced: one compilation for all frames
-        points, normals, vis, dist = jax.block_until_ready(_fields(self.scene, t_arr, bsvs))
-        t2 = time.perf_counter()
-        e, rad = jax.block_until_ready(_combine(self.scene, points, normals, vis, dist))
-        t3 = time.perf_counter()
+        points, normals = jax.block_until_ready(_receivers(self.scene, t_arr))
+        n = points.shape[0]
+        size = self.piece_size(n)
+        starts = range(0, n, size)
+        field_s = time.perf_counter() - t1
+        combine_s = 0.0
+        e_parts, r_parts = [], []
+        bar = tqdm(
+            starts, desc="receivers", unit="piece", leave=False, disable=not self.progress or len(starts) < 2
+        )
+        for s in bar:
+            p = _parallel.pad_rows(points[s : s + size], size) if (s, size) != (0, n) else points
+            q = _parallel.pad_rows(normals[s : s + size], size) if (s, size) != (0, n) else normals
+            if self.mesh is not None:
+                p, q = _parallel.shard_rows(p, self.mesh), _parallel.shard_rows(q, self.mesh)
+            ta = time.perf_counter()
+            vis, dist = jax.block_until_ready(_fields(self._light, bsvs, p))
+            tb = time.perf_counter()
+            e, rad = jax.block_until_ready(_combine(self._light, p, q, vis, dist))
+            tc = time.perf_counter()
+            field_s += tb - ta
+            combine_s += tc - tb
+            m = min(size, n - s)
+            e_parts.append(e if m == size else e[:m])
+            r_parts.append(rad if m == size else rad[:m])
+        bar.close()
+        if len(e_parts) == 1 and self.mesh is None:
+            e, rad = e_parts[0], r_parts[0]
+        else:  # gathered on the host, then one array on the default device
+            e = jnp.asarray(np.concatenate([np.asarray(x) for x in e_parts]))
+            rad = jnp.asarray(np.concatenate([np.asarray(x) for x in r_parts]))
         res = RenderResult(points=points, normals=normals, irradiance=e, radiance=rad)
-        times = {"bsv_ms": 1e3 * (t1 - t0), "field_ms": 1e3 * (t2 - t1), "combine_ms": 1e3 * (t3 - t2)}
+        times = {"bsv_ms": 1e3 * (t1 - t0), "field_ms": 1e3 * field_s, "combine_ms": 1e3 * combine_s}
         times["total_ms"] = sum(times.values())
         return res, times
+
+
+def render_frames(
+    scene: Scene,
+    frames: Sequence[int] | None = None,
+    devices: int | Sequence[jax.Device] | None = None,
+    sphere_path: str = "analytic",
+    chunk: int | None = None,
+) -> list[RenderResult]:
+    """Render several frames, spread round-robin over devices (one host thread per device).
+
+    Each device gets its own copy of the scene (:func:`jshadow._parallel.put_on`) and its own
+    :class:`Renderer`, so the frames assigned to it run there; devices work concurrently. ``frames``
+    defaults to every frame of the scene. Returns the results in the order of ``frames``, as host
+    (NumPy-backed) arrays on the default device.
+    """
+    frames = list(range(scene.n_frames)) if frames is None else [int(f) for f in frames]
+    for f in frames:
+        frame_time(f, scene.n_frames)  # range check, before any thread starts
+    assigned = _parallel.frame_devices(len(frames), devices)
+    devs = list(dict.fromkeys(assigned))
+    results: list = [None] * len(frames)
+    errors: list = []
+
+    def work(dev):
+        try:
+            rend = Renderer(_parallel.put_on(scene, dev), sphere_path=sphere_path, chunk=chunk)
+            for i, f in enumerate(frames):
+                if assigned[i] == dev:
+                    res, _ = rend.frame(f)
+                    results[i] = jax.tree_util.tree_map(np.asarray, res)
+        except BaseException as err:  # re-raised in the calling thread
+            errors.append(err)
+
+    threads = [threading.Thread(target=work, args=(d,), daemon=True) for d in devs]
+    for th in threads:
+        th.start()
+    for th in threads:
+        th.join()
+    if errors:
+        raise errors[0]
+    return [jax.tree_util.tree_map(jnp.asarray, r) for r in results]

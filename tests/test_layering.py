@@ -11,6 +11,7 @@ PKG = pathlib.Path(__file__).resolve().parents[1] / "jshadow"
 LAYER = {
     "_types": 0,
     "_numerics": 0,
+    "_parallel": 0,
     "sh": 1,
     "geometry": 1,
     "entities": 2,
