@@ -31,7 +31,7 @@ from jaxtyping import Array, Float
 
 from . import sh
 from .entities import MeshOccluder, Scene, SphereOccluder, frame_time, receivers_at_time
-from .field import bsv_visibility_sh, sphere_visibility_sh, unit_visibility
+from .field import bsv_visibility_sh, sphere_light_blocked, sphere_visibility_sh, unit_visibility
 from .geometry import bounding_sphere
 from .lights import (
     IrradianceMap,
@@ -248,6 +248,7 @@ def combine(
     vis: list,
     dist: list,
     lighting: Lighting | None = None,
+    analytic_spheres: bool = True,
 ) -> Float[Array, "N 3"]:
     """Irradiance (N, 3) from the occluders' visibilities and the scene's lights.
 
@@ -261,7 +262,10 @@ def combine(
     tabulated irradiance map for the environment) by the SH estimate's occluded/unoccluded ratio,
     clamped to [0, 1]: unoccluded receivers are exact, no receiver is brighter than unoccluded, and
     the n-band truncation of sharp lighting cancels in the ratio. ``lighting`` (from
-    :func:`scene_lighting`) is computed here when not given.
+    :func:`scene_lighting`) is computed here when not given. With ``analytic_spheres`` (the
+    analytic sphere path) the part of a sphere light hidden by a sphere occluder is exact
+    (:func:`jshadow.field.sphere_light_blocked`, multiplied over such occluders) instead of an
+    n-band product, which cannot hold the sharp shadow of a small light.
     """
     n = scene.method.sh_bands
     ratio = scene.method.shading == "ratio"
@@ -297,12 +301,26 @@ def combine(
             continue
         d_l = jnp.linalg.norm(points - light.center, axis=-1)
         unit = unit_visibility((points.shape[0],), n, dtype)
-        near = [jnp.where((dj < d_l)[:, None], vj, unit) for vj, dj in zip(vis, dist, strict=True)]
-        lt = sh.sh_product(transfer, cap)  # (N, n²)
-        occluded = jnp.sum(_product(near) * lt, -1, keepdims=True)
-        if ratio:
-            occluded = _shadow_ratio(occluded, unoccluded, exact)
-        e = e + occluded * light.radiance
+        exact_blockers = [
+            ratio and analytic_spheres and isinstance(occ, SphereOccluder) for occ in scene.occluders
+        ]
+        near = [
+            jnp.where((dj < d_l)[:, None], vj, unit)
+            for vj, dj, ex in zip(vis, dist, exact_blockers, strict=True)
+            if not ex
+        ]
+        visible = jnp.ones((points.shape[0], 1), dtype)
+        for occ, dj, ex in zip(scene.occluders, dist, exact_blockers, strict=True):
+            if ex:
+                hidden = sphere_light_blocked(occ.center, occ.radius, light.center, light.radius, points)
+                visible = visible * jnp.where(dj < d_l, 1.0 - hidden, 1.0)[:, None]
+        if near:
+            lt = sh.sh_product(transfer, cap)  # (N, n²)
+            occluded = jnp.sum(_product(near) * lt, -1, keepdims=True)
+            occluded = _shadow_ratio(occluded, unoccluded, exact) if ratio else occluded
+        else:
+            occluded = exact
+        e = e + occluded * visible * light.radiance
     return e
 
 
@@ -312,7 +330,7 @@ def render_at(scene: Scene, t, bsvs: tuple[BSV | None, ...] | None = None, spher
         bsvs = scene_bsvs(scene, t, sphere_path)
     points, normals = receivers_at_time(scene, t)
     vis, dist = occluder_visibilities(scene, bsvs, points)
-    e = combine(scene, points, normals, vis, dist)
+    e = combine(scene, points, normals, vis, dist, analytic_spheres=sphere_path == "analytic")
     radiance = e * (scene.receivers.albedo / math.pi)
     return RenderResult(points=points, normals=normals, irradiance=e, radiance=radiance)
 
