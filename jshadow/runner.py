@@ -33,7 +33,7 @@ import numpy as np
 
 from . import _parallel
 from .entities import MeshOccluder, Receivers, Scene, frame_time, receivers_at_time
-from .scene import RenderResult, combine, occluder_bsv, occluder_visibilities
+from .scene import RenderResult, combine, occluder_bsv, occluder_visibilities, scene_lighting
 
 __all__ = ["Renderer", "shape_is_static", "render_frames", "DEFAULT_CHUNK"]
 
@@ -65,8 +65,8 @@ def _fields(scene, bsvs, points):
 
 
 @eqx.filter_jit
-def _combine(scene, points, normals, vis, dist):
-    e = combine(scene, points, normals, vis, dist)
+def _combine(scene, points, normals, vis, dist, lighting, analytic_spheres):
+    e = combine(scene, points, normals, vis, dist, lighting, analytic_spheres)
     return e, e * (scene.receivers.albedo / math.pi)
 
 
@@ -109,6 +109,7 @@ class Renderer:
         self.progress = progress
         self.mesh = None if devices is None else _parallel.receiver_mesh(devices)
         self._light = _without_receivers(scene)
+        self._lighting = scene_lighting(scene)  # environment SH / irradiance map: once, not per frame
         self._static_bsvs: dict[int, object] = {}
         self.bsv_computations = 0  # how many BSVs were actually sampled (tests check the reuse)
 
@@ -164,7 +165,9 @@ class Renderer:
             ta = time.perf_counter()
             vis, dist = jax.block_until_ready(_fields(self._light, bsvs, p))
             tb = time.perf_counter()
-            e, rad = jax.block_until_ready(_combine(self._light, p, q, vis, dist))
+            e, rad = jax.block_until_ready(
+                _combine(self._light, p, q, vis, dist, self._lighting, self.sphere_path == "analytic")
+            )
             tc = time.perf_counter()
             field_s += tb - ta
             combine_s += tc - tb
