@@ -114,18 +114,20 @@ def test_cli_outputs_identical_across_processes(config_file, tmp_path):
         "assert main(['reference', cfg, '--spp', '8', '--seed', '5', '--out', d + '/reference']) == 0"
     )
     env = dict(os.environ, JAX_PLATFORMS="cpu")
-    runs = []
-    for i in range(2):
-        d = tmp_path / f"run{i}"
-        p = subprocess.run(
+    runs = [tmp_path / "run0", tmp_path / "run1"]
+    procs = [  # the two processes run at the same time
+        subprocess.Popen(
             [sys.executable, "-c", code, str(d), str(config_file)],
-            capture_output=True,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
             text=True,
-            timeout=600,
             env=env,
         )
-        assert p.returncode == 0, p.stderr[-3000:]
-        runs.append(d)
+        for d in runs
+    ]
+    for p in procs:
+        _, err = p.communicate(timeout=600)
+        assert p.returncode == 0, err[-3000:]
     for sub, keys in (("render", KEYS), ("reference", (*KEYS, "irradiance_stderr"))):
         for f in range(2):
             with (
