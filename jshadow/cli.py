@@ -79,6 +79,11 @@ def _enable_x64_if_requested(config_path: str) -> None:
         jax.config.update("jax_enable_x64", True)
 
 
+def _check_exposure(exposure) -> None:
+    if exposure is not None and not (np.isfinite(exposure) and exposure > 0):
+        raise UsageError(f"--exposure must be a positive finite number, got {exposure}")
+
+
 def _make_out(out: str) -> pathlib.Path:
     p = pathlib.Path(out)
     try:
@@ -150,6 +155,7 @@ def cmd_render(args) -> int:
     from .picture import exposure_for
     from .runner import Renderer
 
+    _check_exposure(args.exposure)
     if args.chunk is not None and args.chunk < 1:
         raise UsageError(f"--chunk must be a positive integer (receivers per piece), got {args.chunk}")
     if args.devices is not None and not 1 <= args.devices <= len(jax.devices()):
@@ -226,7 +232,12 @@ def cmd_reference(args) -> int:
 
     if args.spp < 1:
         raise UsageError(f"--spp must be a positive integer, got {args.spp}")
+    _check_exposure(args.exposure)
     _, scene = _load(args.config)
+    if args.frame is not None and not 0 <= args.frame < scene.n_frames:
+        raise UsageError(
+            f"--frame must be in 0..{scene.n_frames - 1} (the config's frames), got {args.frame}"
+        )
     out = _make_out(args.out)
     frames = range(scene.n_frames) if args.frame is None else [args.frame]
     timings, exposure = [], None
@@ -281,6 +292,11 @@ def cmd_bench(args) -> int:
     if args.frames < 1 or (args.spp is not None and args.spp < 1):
         raise UsageError("--frames and --spp must be positive integers")
     _, scene = _load(args.config)
+    if args.json:  # fail now, not after the timings
+        parent = pathlib.Path(args.json).parent
+        _make_out(str(parent) if str(parent) else ".")
+        if pathlib.Path(args.json).is_dir():
+            raise UsageError(f"--json {args.json} is a folder; expected a file name")
     rend = Renderer(scene)
     t0 = time.perf_counter()
     res, _ = rend.frame(0)

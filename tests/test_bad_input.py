@@ -199,6 +199,11 @@ def test_output_folder_that_cannot_be_created(folder, capsys, out):
         (["reference", "{cfg}", "--spp", "-3", "--out", "{tmp}/o"], "--spp"),
         (["bench", "{cfg}", "--frames", "0"], "--frames"),
         (["fit", "{cfg}", "--out", "{tmp}/o"], "no [fit] table"),
+        (["reference", "{cfg}", "--spp", "4", "--frame", "1", "--out", "{tmp}/o"], "--frame must be in 0..0"),
+        (["render", "{cfg}", "--out", "{tmp}/o", "--exposure", "nan"], "--exposure"),
+        (["render", "{cfg}", "--out", "{tmp}/o", "--chunk", "0"], "--chunk"),
+        (["render", "{cfg}", "--out", "{tmp}/o", "--devices", "64"], "--devices must be in 1.."),
+        (["bench", "{cfg}", "--json", "{tmp}/a_file/b.json"], "a_file"),
         (["paint", "{cfg}"], "paint"),
     ],
 )
