@@ -101,6 +101,7 @@ def child(chunk: int, side: int) -> dict:
         "warm_frame_s_median": float(np.median([w["total_ms"] for w in warm]) / 1e3),
         "warm_stage_ms_median": {k: float(np.median([w[k] for w in warm])) for k in warm[0]},
         "finite": bool(np.all(np.isfinite(e))),
+        "load_average_1min": os.getloadavg()[0],
         "mean_irradiance": float(e.mean()),
         "device": str(jax.devices()[0]),
     }
@@ -142,6 +143,7 @@ def main() -> None:
         "what": "one frame, 1000x1000 receiver plane, 8 twisting bunny_small occluders (BSV every frame), "
         "constant environment + 1 sphere light; peak RSS = VmHWM of a fresh process",
         "machine": f"{os.cpu_count()}-core CPU",
+        "load_average_1min_at_end": os.getloadavg()[0],
         "date": time.strftime("%Y-%m-%d"),
         "command": "python experiments/memory_scale.py " + " ".join(sys.argv[1:]),
         "rows": rows,
