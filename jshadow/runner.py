@@ -37,7 +37,7 @@ from .scene import RenderResult, combine, occluder_bsv, occluder_visibilities, s
 
 __all__ = ["Renderer", "shape_is_static", "render_frames", "DEFAULT_CHUNK"]
 
-DEFAULT_CHUNK = 2**17  # receivers per piece: 131072 (about 1 GiB of intermediates with 8 occluders)
+DEFAULT_CHUNK = 2**17  # receivers per piece: 131072 (1.6 GiB peak RSS with 8 occluders, memory_scale.py)
 
 
 def shape_is_static(occ) -> bool:
