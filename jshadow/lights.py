@@ -399,6 +399,14 @@ class IrradianceMap(eqx.Module):
     values: Float[Array, "H W 3"]
 
 
+def _np_latlong_dirs(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """:func:`jshadow.entities.latlong_to_dir` on the grid u (W,) × v (H,) in NumPy float64 (H, W, 3):
+    static geometry, concrete even under a trace."""
+    theta, phi = np.pi * v[:, None], 2.0 * np.pi * u[None, :]
+    st = np.sin(theta)
+    return np.stack(np.broadcast_arrays(st * np.cos(phi), np.cos(theta), -st * np.sin(phi)), axis=-1)
+
+
 def _block_sum(img, b):
     h, w = img.shape[0] // b, img.shape[1] // b
     return img[: h * b, : w * b].reshape(h, b, w, b, *img.shape[2:]).sum(axis=(1, 3))
@@ -408,13 +416,16 @@ def _env_samples(env: Environment, max_rows: int):
     """Radiance·solid angle (P, 3) and unit directions (P, 3) of the environment in lat-long cells.
 
     "hdr": pixels summed in b×b blocks (b the largest divisor of both sides with H/b >= max_rows,
-    or 1), each block at the centroid of its pixels' directions weighted by luminance × solid
+    or 1; maps of fewer rows are first split into equal sub-pixels), each block at the centroid of its pixels' directions weighted by luminance × solid
     angle; "sky": a max_rows × 2·max_rows grid of cells at their centres. Every cell's solid angle
     is exact.
     """
     rad = jnp.asarray(env.radiance)
     if env.kind == "hdr":
         img = jnp.asarray(env.image)
+        up = -(-max_rows // img.shape[0])  # small maps: split pixels (piecewise constant: exact)
+        if up > 1:
+            img = jnp.repeat(jnp.repeat(img, up, axis=0), up, axis=1)
         h, w = img.shape[:2]
         b = max([k for k in range(1, h + 1) if h % k == 0 and w % k == 0 and h // k >= max_rows] or [1])
     else:
@@ -423,22 +434,21 @@ def _env_samples(env: Environment, max_rows: int):
     omega = (edges[:-1] - edges[1:]) * (2.0 * np.pi / w)  # (h,) solid angle of one cell in each row
     v = (np.arange(h) + 0.5) / h
     u = (np.arange(w) + 0.5) / w
-    uu, vv = np.meshgrid(u, v)
-    dirs = np.asarray(latlong_to_dir(jnp.asarray(uu), jnp.asarray(vv)), np.float64)
+    dirs = _np_latlong_dirs(u, v)
     wdir = dirs * omega[:, None, None]
     om = np.broadcast_to(omega[:, None], (h, w))
     if env.kind == "hdr":
         energy = _block_sum(img * jnp.asarray(om[..., None], img.dtype), b) * rad
         # a block's light sits at its energy centroid (a small sun keeps its direction); the
         # solid-angle term keeps black blocks well defined
-        lum = np.asarray(jax.lax.stop_gradient(jnp.mean(img, -1)), np.float64)
-        lum = lum / max(float(np.mean(lum)), 1e-30)
-        d = _block_sum(wdir * (lum[..., None] + 1e-6), b)
+        lum = jax.lax.stop_gradient(jnp.mean(img, -1))
+        lum = lum / jnp.maximum(jnp.mean(lum), 1e-30)
+        d = _block_sum(jnp.asarray(wdir, img.dtype) * (lum[..., None] + 1e-6), b)
+        d = d / jnp.linalg.norm(d, axis=-1, keepdims=True)  # never 0: the 1e-6 keeps every weight > 0
     else:
         energy = env.radiance_at(jnp.asarray(dirs, rad.dtype)) * jnp.asarray(om[..., None], rad.dtype)
-        d = wdir
-    d = d / np.linalg.norm(d, axis=-1, keepdims=True)
-    return energy.reshape(-1, 3), jnp.asarray(d.reshape(-1, 3), rad.dtype)
+        d = jnp.asarray(wdir / np.linalg.norm(wdir, axis=-1, keepdims=True))
+    return energy.reshape(-1, 3), d.reshape(-1, 3).astype(rad.dtype)
 
 
 def environment_irradiance_map(env: Environment, resolution: tuple[int, int] = (33, 64)) -> IrradianceMap:
@@ -460,8 +470,8 @@ def environment_irradiance_map(env: Environment, resolution: tuple[int, int] = (
     if env.kind not in ("hdr", "sky"):
         raise ValueError(f"unknown environment kind {env.kind!r}; expected constant, hdr or sky")
     energy, dirs = _env_samples(env, 64)
-    uu, vv = np.meshgrid(np.arange(cols) / cols, np.arange(rows) / (rows - 1))
-    normals = latlong_to_dir(jnp.asarray(uu, rad.dtype), jnp.asarray(vv, rad.dtype)).reshape(-1, 3)
+    normals = jnp.asarray(_np_latlong_dirs(np.arange(cols) / cols, np.arange(rows) / (rows - 1)), rad.dtype)
+    normals = normals.reshape(-1, 3)
     cosines = jnp.maximum(normals @ dirs.T, 0.0)  # (H·W, P)
     vals = jnp.matmul(cosines, energy, precision=jax.lax.Precision.HIGHEST)
     return IrradianceMap(values=vals.reshape(rows, cols, 3))

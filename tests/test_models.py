@@ -285,3 +285,21 @@ def test_ratio_shading_sphere_light_shadow_is_sharp():
         err[shading] = float(np.sqrt(np.mean((e - truth) ** 2)) / np.mean(truth))
     assert err["ratio"] < 0.01
     assert err["product"] > 5 * err["ratio"]
+
+
+@pytest.mark.parametrize("kind", ["sky", "hdr"])
+def test_irradiance_map_under_jit_and_grad(kind):
+    """The map is built from traced environments too (render under jax.jit / jax.grad); a small
+    piecewise-constant map is split into sub-pixels, so a constant image gives πL."""
+    img = jnp.ones((8, 16, 3), jnp.float32) if kind == "hdr" else None
+    env = Environment(radiance=jnp.ones(3, jnp.float32), image=img, kind=kind)
+    up = jnp.asarray([[0.0, 1.0, 0.0]], jnp.float32)
+
+    @jax.jit
+    def f(e):
+        return environment_irradiance(environment_irradiance_map(e), up)[0, 0]
+
+    want = math.pi if kind == "hdr" else 7 * math.pi / 9
+    assert float(f(env)) == pytest.approx(want, rel=2e-3)
+    g = jax.grad(lambda r: f(Environment(radiance=r, image=img, kind=kind)))(env.radiance)
+    assert float(g[0]) == pytest.approx(want, rel=2e-3)
