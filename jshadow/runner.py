@@ -109,7 +109,9 @@ class Renderer:
         self.progress = progress
         self.mesh = None if devices is None else _parallel.receiver_mesh(devices)
         self._light = _without_receivers(scene)
-        self._lighting = scene_lighting(scene)  # environment SH / irradiance map: once, not per frame
+        # environment SH / irradiance map: once per renderer, not per frame (and finished here, so
+        # that the asynchronous dispatch does not leak into the first frame's BSV timing)
+        self._lighting = jax.block_until_ready(scene_lighting(scene))
         self._static_bsvs: dict[int, object] = {}
         self.bsv_computations = 0  # how many BSVs were actually sampled (tests check the reuse)
 
