@@ -127,9 +127,23 @@ def exact_visibility_sh(points, vertices, faces, *, n: int, directions: tuple[in
     return vis @ (sh_basis(dirs, n) * weights[:, None])
 
 
+def git_state() -> str:
+    """The commit measured and whether jshadow/ had uncommitted changes (others edit the tree)."""
+    import subprocess
+
+    def run(*a):
+        return subprocess.run(
+            ["git", *a], cwd=ROOT, capture_output=True, text=True, check=False
+        ).stdout.strip()
+
+    dirty = run("status", "--porcelain", "--", "jshadow")
+    return run("rev-parse", "--short", "HEAD") + (" + uncommitted changes in jshadow/" if dirty else "")
+
+
 def machine() -> dict:
-    """Machine, software and load at measurement time."""
+    """Machine, software, load and the code state at measurement time."""
     return {
+        "git": git_state(),
         "cpu": platform.processor() or platform.machine(),
         "cores": os.cpu_count(),
         "backend": jax.devices()[0].platform,

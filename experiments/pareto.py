@@ -6,11 +6,15 @@ normal +y, and one occluder: ``sphere`` (radius 0.5 at (0, 1.2, 0) through the B
 analytic BSV of a sphere + M_k; directions play no part), ``bunny`` and ``spot`` (bounding radius
 0.8 at (0, 1, 0)).
 
-Sweep (full factorial): SH bands 3–6 × directions 8², 16², 32² × BSV grid 6×10, 12×20, 24×40, at
-the shipped shell R = 1.5 r (edge-scan), plus the axis sweeps around the default (4 bands, 32²,
-12×20) at the paper's shell R = r (brute force). Each configuration is rendered with
-:class:`jshadow.runner.Renderer` (BSV sampled every frame, as for a deforming occluder); time per
-frame = BSV + field + combination, warm median of ``--runs`` (fresh renderers), compile separately.
+Sweep. Three method families, every key given explicitly (:func:`family`): ``default`` — the
+library's accurate setting (shell R = 1.5 r with the edge-scan sampler, concentric-sphere rescaling,
+BSV and M_k in n + 1 bands, ratio shading); ``paper`` — the deformable-shadow-fields paper exactly
+(R = r, brute force, square-silhouette f_k, n-band BSV, SH products); ``shell1.5`` — the paper's
+method with the BSV on a 1.5 r shell. Full factorial for ``default``: SH bands 3–6 × directions
+8², 16², 32² × BSV grid 6×10, 12×20, 24×40; axis sweeps around 4 bands, 32², 12×20 for the other
+two. Each configuration is rendered with :class:`jshadow.runner.Renderer` (BSV sampled every
+frame, as for a deforming occluder); time per frame = BSV + field + combination, warm median of
+``--runs`` (fresh renderers), compile separately.
 
 Error: relative RMSE of irradiance against the exact irradiance ``E = ∫ V(ω) max(0, n·ω) dω``
 (divided by the mean exact irradiance). The exact irradiance is computed by a deterministic
@@ -28,8 +32,9 @@ Decomposition, per number of bands n (cumulative, each a relative RMSE against t
 * ``truncation``: the exact visibility at each receiver projected onto n bands (64² directions
   per hemisphere), times the clamped cosine — what any n-band method would get;
 * ``+ shrinking``: the visibility sampled on the shell at the receiver's own direction (64²
-  hemisphere directions, no BSV grid) and extrapolated with M_k at the receiver's exact k (a
-  256-entry table) — the square-silhouette approximation of the paper on top of truncation;
+  hemisphere directions, no BSV grid) and extrapolated with the family's M_k (model, bands) at the
+  receiver's exact k (a 256-entry table), then truncated to n bands — the rescaling approximation
+  on top of truncation (per family);
 * ``+ interpolation`` (the method): bilinear BSV interpolation on the grid and the 16-entry M_k
   table, at the configuration's directions — read off the sweep.
 
@@ -83,6 +88,21 @@ BANDS = (3, 4, 5, 6)
 DIRECTIONS = ((8, 8), (16, 16), (32, 32))
 GRIDS = ((6, 10), (12, 20), (24, 40))
 DEFAULT = {"sh_bands": 4, "directions": (32, 32), "bsv_grid": (12, 20)}
+
+
+def family(name: str, n: int) -> dict:
+    """The method keys that define a family, for n bands (all given explicitly, so that the results
+    do not depend on the library's defaults)."""
+    if name == "default":  # the library's accurate setting
+        return {"shell": 1.5, "model": "sphere", "bsv_bands": min(n + 1, 8), "shading": "ratio"}
+    if name == "paper":  # the deformable-shadow-fields paper exactly (jshadow.entities.Method.paper)
+        return {"shell": 1.0, "model": "paper", "bsv_bands": n, "shading": "product"}
+    if name == "shell1.5":  # the paper's method with the BSV on a 1.5 r shell (edge-scan)
+        return {"shell": 1.5, "model": "paper", "bsv_bands": n, "shading": "product"}
+    raise ValueError(f"unknown family {name!r}")
+
+
+FAMILIES = ("default", "paper", "shell1.5")
 CONST_ENV = {"type": "constant", "radiance": [1.0, 1.0, 1.0]}
 
 
@@ -168,7 +188,7 @@ def rel_rmse(a, b) -> float:
 
 @partial(jax.jit, static_argnames=("directions",))
 def _shell_sh(points, center, shell_radius, vertices, faces, *, directions):
-    """Visibility SH (6 bands) on the shell at each receiver's own direction, local frame."""
+    """Visibility SH (8 bands) on the shell at each receiver's own direction, local frame."""
     rel = points - center
     u = rel / jnp.linalg.norm(rel, axis=-1, keepdims=True)
     theta = jnp.arccos(jnp.clip(u[:, 2], -1.0, 1.0))
@@ -176,12 +196,14 @@ def _shell_sh(points, center, shell_radius, vertices, faces, *, directions):
     _, frames = bsv_frames(theta, phi)
     local, w = hemisphere_directions(*directions, dtype=points.dtype)
     occ = ray_fan_any_hit(center + shell_radius * u, world_dirs(frames, local), vertices, faces)
-    full = jnp.zeros(36, points.dtype).at[0].set(math.sqrt(4.0 * math.pi))
-    return full - occ.astype(points.dtype) @ (sh.sh_basis(local, 6) * w[:, None]), frames
+    full = jnp.zeros(64, points.dtype).at[0].set(math.sqrt(4.0 * math.pi))
+    return full - occ.astype(points.dtype) @ (sh.sh_basis(local, 8) * w[:, None]), frames
 
 
-def decomposition(name: str, res: int, shell: float, exact: np.ndarray) -> dict:
-    """Cumulative error per band count: truncation, + shrinking (see the module docstring)."""
+def decomposition(name: str, res: int, fam: str, exact: np.ndarray) -> dict:
+    """Cumulative error per band count for a method family: truncation, + shrinking (the family's
+    shell, rescaling model and BSV bands; see the module docstring)."""
+    shell = family(fam, 4)["shell"]
     scene = build(name, res, {"shell": shell})
     occ = scene.occluders[0]
     points = scene.receivers.points
@@ -191,11 +213,11 @@ def decomposition(name: str, res: int, shell: float, exact: np.ndarray) -> dict:
         from jshadow.visibility import bsv_sphere
 
         s_ex = sphere_visibility_sh(occ.center, occ.radius, points, 6)
-        cap = bsv_sphere(occ.center, occ.radius, n=6, grid=(1, 1), shell=shell).coeffs[0, 0]
+        cap = bsv_sphere(occ.center, occ.radius, n=8, grid=(1, 1), shell=shell).coeffs[0, 0]
         rel = points - occ.center
         u = rel / jnp.linalg.norm(rel, axis=-1, keepdims=True)
         _, frames = bsv_frames(jnp.arccos(jnp.clip(u[:, 2], -1.0, 1.0)), jnp.arctan2(u[:, 1], u[:, 0]))
-        s_r = jnp.broadcast_to(cap, (points.shape[0], 36))
+        s_r = jnp.broadcast_to(cap, (points.shape[0], 64))
     else:
         v, f = occluder_mesh(scene)
         s_ex = exact_visibility_sh(points, v, f, n=6, directions=(64, 64))
@@ -206,8 +228,10 @@ def decomposition(name: str, res: int, shell: float, exact: np.ndarray) -> dict:
     for n in BANDS:
         t = sh.clamped_cosine(normals, n)
         e_trunc = np.asarray(jnp.sum(s_ex[:, : n * n] * t, -1))
-        table = mk_table(n=n, num=256, d_min=0.2, d_max=8.0, dtype=jnp.float32)
-        s_d = sh.rotate(mk_apply(table, k, s_r[:, : n * n]), frames)
+        f = family(fam, n)
+        nf = f["bsv_bands"]
+        table = mk_table(n=nf, num=256, d_min=0.2, d_max=8.0, model=f["model"], dtype=jnp.float32)
+        s_d = sh.rotate(mk_apply(table, k, s_r[:, : nf * nf]), frames)[:, : n * n]
         e_shrink = np.asarray(jnp.sum(s_d * t, -1))
         out[n] = {"truncation": rel_rmse(e_trunc, exact), "shrinking": rel_rmse(e_shrink, exact)}
     return out
@@ -224,16 +248,19 @@ def time_config(scene, sphere_path: str, runs: int) -> tuple[np.ndarray, dict]:
 
 
 def configs(name: str):
+    """(family, method keys): the full factorial for the default family, axis sweeps around
+    :data:`DEFAULT` for the others."""
     dirs = DIRECTIONS if name != "sphere" else ((32, 32),)  # the sphere's BSV is analytic
     for n, dr, g in itertools.product(BANDS, dirs, GRIDS):
-        yield {"sh_bands": n, "directions": dr, "bsv_grid": g, "shell": 1.5}
-    seen = []
-    for key, values in (("sh_bands", BANDS), ("directions", dirs), ("bsv_grid", GRIDS)):
-        for val in values:
-            m = {**DEFAULT, key: val, "shell": 1.0}
-            if m not in seen:
-                seen.append(m)
-                yield m
+        yield "default", {"sh_bands": n, "directions": dr, "bsv_grid": g, **family("default", n)}
+    for fam in FAMILIES[1:]:
+        seen = []
+        for key, values in (("sh_bands", BANDS), ("directions", dirs), ("bsv_grid", GRIDS)):
+            for val in values:
+                m = {**DEFAULT, key: val}
+                if m not in seen:
+                    seen.append(m)
+                    yield fam, {**m, **family(fam, m["sh_bands"])}
 
 
 def pareto_front(points: list[tuple[float, float]]) -> list[int]:
@@ -259,7 +286,7 @@ def plot(name: str, rows: list[dict], decomp: dict, path):
             color=colors.get(m["sh_bands"], "gray"),
             marker=markers.get(tuple(m["bsv_grid"]), "x"),
             s=sizes.get(tuple(m["directions"]), 30),
-            edgecolors="k" if m["shell"] == 1.0 else "none",
+            edgecolors={"default": "none", "paper": "k", "shell1.5": "r"}[r["family"]],
             linewidths=0.8,
         )
     pts = [(r["frame_ms"], r["rel_rmse"]) for r in rows]
@@ -267,14 +294,16 @@ def plot(name: str, rows: list[dict], decomp: dict, path):
     ax.plot([pts[i][0] for i in front], [100 * pts[i][1] for i in front], "k--", lw=0.8, label="Pareto front")
     for n in BANDS:
         for key, ls in (("truncation", ":"), ("shrinking", "-.")):
-            ax.axhline(100 * decomp["1.5"][str(n)][key], color=colors[n], ls=ls, lw=0.9)
+            ax.axhline(100 * decomp["default"][str(n)][key], color=colors[n], ls=ls, lw=0.9)
     for n in BANDS:
         ax.scatter([], [], color=colors[n], label=f"{n} bands")
     for g in GRIDS:
         ax.scatter([], [], color="gray", marker=markers[g], label=f"BSV {g[0]}×{g[1]}")
     ax.plot([], [], "k:", lw=0.9, label="SH truncation (n bands)")
-    ax.plot([], [], "k-.", lw=0.9, label="+ shrinking (shell 1.5)")
-    ax.scatter([], [], facecolors="none", edgecolors="k", label="shell 1.0 (paper)")
+    ax.plot([], [], "k-.", lw=0.9, label="+ shrinking (default family)")
+    ax.scatter([], [], color="gray", label="default (shell 1.5, sphere model,\nn+1 BSV bands, ratio)")
+    ax.scatter([], [], facecolors="none", edgecolors="k", label="paper (shell 1, f_k, product)")
+    ax.scatter([], [], facecolors="none", edgecolors="r", label="paper's method, shell 1.5")
     ax.set_xscale("log")
     ax.set_yscale("log")
     ax.set_xlabel("time per frame, BSV + field + combination [ms] (marker size: directions 8², 16², 32²)")
@@ -324,7 +353,7 @@ def main() -> None:
             "mc_spp": args.spp,
             "mc_rel_rmse_vs_exact": rel_rmse(ref["mc"], exact),
             # receivers that see the whole environment have zero Monte Carlo variance: z over the others
-            "mc_rms_z": float(np.sqrt(np.mean(((ref["mc"] - exact) / ref["mc_stderr"])[noisy] ** 2))),
+            "mc_rms_z": float(np.sqrt(np.mean(((ref["mc"] - exact)[noisy] / ref["mc_stderr"][noisy]) ** 2))),
             "mc_max_abs_err_zero_variance_rel": float(
                 np.max(np.abs(ref["mc"] - exact)[~noisy], initial=0.0) / np.mean(exact)
             ),
@@ -334,15 +363,15 @@ def main() -> None:
         if "closed_form" in ref:
             checks["quadrature_vs_closed_form_rel_rmse"] = rel_rmse(ref["coarse"], ref["closed_form"])
         decomp = {
-            str(s): {str(n): e for n, e in decomposition(name, args.res, s, exact).items()}
-            for s in (1.0, 1.5)
+            fam: {str(n): e for n, e in decomposition(name, args.res, fam, exact).items()} for fam in FAMILIES
         }
         rows = []
-        for m in configs(name):
+        for fam, m in configs(name):
             scene = build(name, args.res, m)
             irr, ms = time_config(scene, "bsv" if name == "sphere" else "analytic", args.runs)
             rows.append(
                 {
+                    "family": fam,
                     "method": m,
                     "receivers": int(irr.shape[0]),
                     "rel_rmse": rel_rmse(irr, exact),
@@ -351,8 +380,8 @@ def main() -> None:
                 }
             )
             print(
-                f"{name:>6} n={m['sh_bands']} dirs={m['directions'][0]:2d}² grid={m['bsv_grid'][0]:2d}×"
-                f"{m['bsv_grid'][1]:2d} shell={m['shell']}: {100 * rows[-1]['rel_rmse']:6.2f} %  "
+                f"{name:>6} {fam:>8} n={m['sh_bands']} dirs={m['directions'][0]:2d}² "
+                f"grid={m['bsv_grid'][0]:2d}×{m['bsv_grid'][1]:2d}: {100 * rows[-1]['rel_rmse']:6.2f} %  "
                 f"{ms['total_ms']:7.1f} ms  (compile+first {ms['first_call_ms'] / 1e3:.1f} s)",
                 flush=True,
             )
@@ -368,7 +397,12 @@ def main() -> None:
             "decomposition": decomp,
             "rows": rows,
             "pareto_front": [
-                rows[i]["method"] | {"rel_rmse": rows[i]["rel_rmse"], "frame_ms": rows[i]["frame_ms"]}
+                rows[i]["method"]
+                | {
+                    "family": rows[i]["family"],
+                    "rel_rmse": rows[i]["rel_rmse"],
+                    "frame_ms": rows[i]["frame_ms"],
+                }
                 for i in front
             ],
             "figure": str(png.relative_to(ROOT)),
