@@ -70,7 +70,7 @@ def many_spheres(k, n_plane=160):
         )
         for _ in range(k)
     )
-    return Scene(Method(), plane(n_plane), occ, (), Environment(jnp.ones(3, jnp.float32)), n_frames=2)
+    return Scene(Method.paper(), plane(n_plane), occ, (), Environment(jnp.ones(3, jnp.float32)), n_frames=2)
 
 
 def main():

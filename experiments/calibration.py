@@ -82,7 +82,7 @@ VARIANTS = [
 
 def scene_with(occluder, **method) -> Scene:
     return Scene(
-        method=Method(**method),
+        method=Method.paper(**method),
         receivers=receivers(),
         occluders=(occluder,),
         lights=(),

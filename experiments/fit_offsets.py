@@ -91,7 +91,7 @@ def main() -> None:
     normals = np.asarray(vertex_normals(jnp.asarray(unit, f32), jnp.asarray(faces)), np.float64)
     truth = true_offsets(unit, normals)
 
-    method = Method(sh_bands=4, bsv_grid=(8, 12), directions=(16, 16))
+    method = Method.paper(sh_bands=4, bsv_grid=(8, 12), directions=(16, 16))
     receivers = plane_receivers(
         jnp.zeros(3, f32), jnp.asarray(PLANE["size"], f32), PLANE["resolution"], jnp.full(3, 0.8, f32)
     )

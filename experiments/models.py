@@ -55,6 +55,7 @@ import matplotlib
 import numpy as np
 
 matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
 
 import jshadow  # noqa: E402
 from jshadow.config import build_scene, config_from_dict  # noqa: E402
@@ -72,12 +73,12 @@ FIGURES = ROOT / "experiments" / "figures"
 
 # method variants: label -> [method] keys (on top of the scene's own sizes: bands, grid, directions)
 VARIANTS = {
-    "paper": dict(shell=1.0, model="paper", bsv_bands=None, shading="product"),
-    "shell1.5": dict(shell=1.5, model="paper", bsv_bands=None, shading="product"),
-    "sphere": dict(shell=1.5, model="sphere", bsv_bands=None, shading="product"),
+    "paper": dict(shell=1.0, model="paper", bsv_bands=4, shading="product"),
+    "shell1.5": dict(shell=1.5, model="paper", bsv_bands=4, shading="product"),
+    "sphere": dict(shell=1.5, model="sphere", bsv_bands=4, shading="product"),
     "sphere+b5": dict(shell=1.5, model="sphere", bsv_bands=5, shading="product"),
-    "ratio": dict(shell=1.5, model="paper", bsv_bands=None, shading="ratio"),
-    "sphere+ratio": dict(shell=1.5, model="sphere", bsv_bands=None, shading="ratio"),
+    "ratio": dict(shell=1.5, model="paper", bsv_bands=4, shading="ratio"),
+    "sphere+ratio": dict(shell=1.5, model="sphere", bsv_bands=4, shading="ratio"),
     "sphere+b5+ratio": dict(shell=1.5, model="sphere", bsv_bands=5, shading="ratio"),
 }
 DEFAULT_VARIANT = "sphere+b5+ratio"
@@ -159,7 +160,7 @@ def _cases():
             "bsv",
             True,
         ),
-        "sphere": (lambda m, r: _config_scene("sphere.toml", r, m), 0, "bsv", False),
+        "sphere": (lambda m, r: _config_scene("sphere.toml", r, m), 0, "analytic", False),
         "bunny_studio": (lambda m, r: _config_scene("bunny_studio.toml", r, m), 0, "analytic", False),
         "spot_sunset": (lambda m, r: _config_scene("spot_sunset.toml", r, m), 0, "analytic", False),
         "airplane_bend_last": (lambda m, r: _config_scene("airplane_bend.toml", r, m), 23, "analytic", False),
@@ -308,6 +309,61 @@ def errors(approx, ref, n_plane):
     return out
 
 
+def plot(results: dict) -> list[str]:
+    """Pareto plot (error against time per frame, one panel per scene) and error maps."""
+    FIGURES.mkdir(parents=True, exist_ok=True)
+    cases = [c for c in _cases() if c in results["cases"]]
+    cols = 4
+    rows = -(-len(cases) // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(3.4 * cols, 2.9 * rows), dpi=100, squeeze=False)
+    marks = dict(zip(VARIANTS, "osD^v<>", strict=False))
+    for ax, name in zip(axes.flat, cases, strict=False):
+        for label, v in results["cases"][name]["variants"].items():
+            ax.scatter(
+                v["warm_ms"],
+                v["rel_rmse_pct"],
+                marker=marks.get(label, "x"),
+                s=28,
+                label=label,
+                edgecolor="k" if label == DEFAULT_VARIANT else None,
+            )
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.axhline(1.0, color="0.6", lw=0.8, ls="--")
+        ax.set_title(name + ("" if results["cases"][name]["tuned"] is False else " (tuned on)"), fontsize=8)
+        ax.set_xlabel("ms per frame (warm)", fontsize=7)
+        ax.set_ylabel("rel. RMSE [%]", fontsize=7)
+        ax.tick_params(labelsize=6)
+    for ax in list(axes.flat)[len(cases) :]:
+        ax.axis("off")
+    axes.flat[0].legend(fontsize=6, loc="best")
+    fig.tight_layout()
+    paths = [FIGURES / "models_pareto.png"]
+    fig.savefig(paths[0])
+    plt.close(fig)
+    maps = [c for c in cases if (REFS / f"{c}.default.npy").exists() and (REFS / f"{c}.paper.npy").exists()]
+    fig, axes = plt.subplots(2, len(maps), figsize=(2.3 * len(maps), 4.6), dpi=100, squeeze=False)
+    for j, name in enumerate(maps):
+        ref = np.load(REFS / f"{name}.npz")["mean"]
+        n_plane = results["cases"][name]["plane_receivers"]
+        side = int(round(math.sqrt(n_plane)))
+        for i, label in enumerate(("paper", "default")):
+            approx = np.load(REFS / f"{name}.{label}.npy")
+            err = ((approx - ref)[:n_plane].mean(1) / ref[:n_plane].mean()).reshape(side, side)
+            im = axes[i, j].imshow(100 * err, cmap="RdBu_r", vmin=-10, vmax=10, origin="lower")
+            axes[i, j].set_xticks([])
+            axes[i, j].set_yticks([])
+            if i == 0:
+                axes[i, j].set_title(name, fontsize=7)
+            if j == 0:
+                axes[i, j].set_ylabel("paper" if i == 0 else "default", fontsize=8)
+    fig.colorbar(im, ax=axes, shrink=0.8, label="(render − reference) / mean [%]")
+    paths.append(FIGURES / "models_maps.png")
+    fig.savefig(paths[1])
+    plt.close(fig)
+    return [str(p.relative_to(ROOT)) for p in paths]
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--res", type=int, default=32, help="receiver plane resolution of shipped/untuned scenes")
@@ -316,11 +372,17 @@ def main() -> None:
     ap.add_argument("--cases", nargs="*", default=None)
     ap.add_argument("--variants", nargs="*", default=None)
     ap.add_argument("--runs", type=int, default=3, help="warm frames timed per variant")
+    ap.add_argument("--plot-only", action="store_true", help="redraw the figures from models.json")
     args = ap.parse_args()
+    out_path = RESULTS / "models.json"
+    if args.plot_only:
+        results = json.loads(out_path.read_text())
+        results["figures"] = plot(results)
+        out_path.write_text(json.dumps(results, indent=1))
+        return
     cases = _cases()
     names = args.cases or list(cases)
     variants = args.variants or list(VARIANTS)
-    out_path = RESULTS / "models.json"
     results = json.loads(out_path.read_text()) if out_path.exists() else {"cases": {}}
     t_start = time.perf_counter()
     for name in names:
@@ -359,6 +421,7 @@ def main() -> None:
     results["machine"] = dict(platform=platform.platform(), jax=jax.__version__, devices=str(jax.devices()))
     results["seconds"] = time.perf_counter() - t_start
     RESULTS.mkdir(parents=True, exist_ok=True)
+    results["figures"] = plot(results)
     out_path.write_text(json.dumps(results, indent=1))
 
 

@@ -46,27 +46,47 @@ SHADINGS = ("product", "ratio")
 class Method:
     """Static options of the shadow-field method (the ``[method]`` table). Validated on creation.
 
-    ``bsv_bands`` > ``sh_bands`` samples and extrapolates visibility with more bands than the
-    lighting and truncates after M_k (so the warp does not act on an already-truncated function).
-    ``shading="ratio"`` makes unoccluded lighting exact (:func:`jshadow.scene.combine`).
+    The defaults are the accurate setting measured in ``experiments/models.py`` (BENCHMARKS.md,
+    "Accuracy beyond the paper"); :meth:`paper` gives the deformable-shadow-fields paper's method
+    exactly. The four options that differ:
+
+    * ``shell`` — the BSV is sampled on a shell of ``shell`` × the bounding radius (paper: 1.0, on
+      the bounding sphere itself; 1.5 keeps every sample point off the surface and enables the
+      edge-scan sampler);
+    * ``model`` — the M_k rescaling: "paper" (square silhouette f_k) or "sphere" (concentric
+      spheres, asin(k sin θ)); see :mod:`jshadow.scaling`;
+    * ``bsv_bands`` — bands in which visibility is sampled and extrapolated before it is truncated
+      to ``sh_bands`` (paper: ``sh_bands``; default None = ``sh_bands + 1``, at most 8), so M_k does
+      not warp an already-truncated function;
+    * ``shading`` — "product" (Zhou et al. 2005: every term an n-band SH product) or "ratio"
+      (exact unoccluded irradiance times the SH estimate's occluded/unoccluded ratio; exact sphere
+      occluder/sphere light overlap): see :func:`jshadow.scene.combine`.
     """
 
     sh_bands: int = 4  # n: n² coefficients
     bsv_grid: tuple[int, int] = (12, 20)  # θ × φ sample points on the bounding sphere
     directions: tuple[int, int] = (32, 32)  # hemisphere directions per sample point
     dtype: str = "float32"
-    shell: float = 1.0  # sampling-shell radius R / bounding radius r (1.0 = the paper)
-    model: str = "paper"  # extrapolation model (see jshadow.scaling)
+    shell: float = 1.5  # sampling-shell radius R / bounding radius r (1.0 = the paper)
+    model: str = "sphere"  # extrapolation model (see jshadow.scaling); "paper" = the paper
     radial_samples: int = 16  # number of tabulated M_k (Zhou et al. 2005 use 16)
     d_range: tuple[float, float] = (0.2, 8.0)  # tabulated receiver distances, in shell radii
     bsv_method: str = "auto"  # "auto" | "brute" | "edgescan"
-    bsv_bands: int | None = None  # bands of the BSV and M_k (None: sh_bands); truncated after M_k
-    shading: str = "product"  # "product" (Zhou et al. 2005) | "ratio" (exact unoccluded × SH ratio)
+    bsv_bands: int | None = None  # bands of the BSV and M_k (None: sh_bands + 1, at most 8)
+    shading: str = "ratio"  # "ratio" | "product" (Zhou et al. 2005, the paper)
+
+    @classmethod
+    def paper(cls, **options) -> Method:
+        """The deformable-shadow-fields paper's method: shell 1, square-silhouette f_k, BSV in the
+        lighting's bands, SH products (Zhou et al. 2005). ``options`` override any field."""
+        sh_bands = options.get("sh_bands", cls.sh_bands)
+        base = dict(shell=1.0, model="paper", bsv_bands=sh_bands, shading="product")
+        return cls(**{**base, **options})
 
     @property
     def field_bands(self) -> int:
-        """Bands in which visibility is sampled and extrapolated (``bsv_bands`` or ``sh_bands``)."""
-        return self.sh_bands if self.bsv_bands is None else self.bsv_bands
+        """Bands in which visibility is sampled and extrapolated (see ``bsv_bands``)."""
+        return min(self.sh_bands + 1, 8) if self.bsv_bands is None else self.bsv_bands
 
     def __post_init__(self):
         if not (1 <= self.sh_bands <= 8):

@@ -27,6 +27,7 @@ from ._schema import (
     MESH_SHAPES,
     MODELS,
     OCCLUDER_TYPES,
+    PRESETS,
     RECEIVER_TYPES,
     SHADINGS,
     AnimationConfig,
@@ -172,6 +173,7 @@ def _leaf(x, dtype) -> jax.Array:
 
 # --- tables ---------------------------------------------------------------------------------------
 _METHOD_KEYS = (
+    "preset",
     "sh_bands",
     "bsv_grid",
     "directions",
@@ -190,18 +192,24 @@ def _method(t: _Table) -> MethodConfig:
     d_range = tuple(t.vector("d_range", 2, [0.2, 8.0], check="positive"))
     if not d_range[0] < d_range[1]:
         raise t.error("d_range", f"expected two increasing distances, got {list(d_range)}")
+    preset = t.string("preset", "default", choices=PRESETS)
+    sh_bands = t.integer("sh_bands", 4, lo=1, hi=8)
+    paper = preset == "paper"
     cfg = dict(
-        sh_bands=t.integer("sh_bands", 4, lo=1, hi=8),
+        preset=preset,
+        sh_bands=sh_bands,
         bsv_grid=t.integers("bsv_grid", 2, [12, 20], lo=2),
         directions=t.integers("directions", 2, [32, 32], lo=2),
         dtype=t.string("dtype", "float32", choices=("float32", "float64")),
-        shell=t.number("shell", 1.0, check=">=1"),
-        model=t.string("model", "paper", choices=MODELS),
+        shell=t.number("shell", 1.0 if paper else 1.5, check=">=1"),
+        model=t.string("model", "paper" if paper else "sphere", choices=MODELS),
         radial_samples=t.integer("radial_samples", 16, lo=2),
         d_range=d_range,
         bsv_method=t.string("bsv_method", "auto", choices=("auto", "brute", "edgescan")),
-        bsv_bands=t.integer("bsv_bands", 4, lo=1, hi=8) if t.has("bsv_bands") else None,
-        shading=t.string("shading", "product", choices=SHADINGS),
+        bsv_bands=(
+            t.integer("bsv_bands", 4, lo=1, hi=8) if t.has("bsv_bands") else (sh_bands if paper else None)
+        ),
+        shading=t.string("shading", "product" if paper else "ratio", choices=SHADINGS),
     )
     try:
         return MethodConfig(**cfg)

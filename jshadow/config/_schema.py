@@ -39,6 +39,7 @@ __all__ = [
     "RECEIVER_TYPES",
     "MODELS",
     "SHADINGS",
+    "PRESETS",
 ]
 
 ENVIRONMENT_TYPES = ("constant", "hdr", "sky")
@@ -48,6 +49,7 @@ LIGHT_TYPES = ("sphere",)
 RECEIVER_TYPES = ("plane",)
 MODELS = ("paper", "sphere")
 SHADINGS = ("product", "ratio")
+PRESETS = ("default", "paper")
 
 
 def _check_leaf(owner: str, name: str, value, shape: tuple[int, ...] | None, positive: bool = False):
@@ -73,26 +75,31 @@ def _check_leaf(owner: str, name: str, value, shape: tuple[int, ...] | None, pos
 class MethodConfig(eqx.Module):
     """``[method]``: the static options of :class:`jshadow.entities.Method` (every key optional).
 
+    ``preset`` "default" | "paper" chooses the defaults of ``shell``, ``model``, ``bsv_bands`` and
+    ``shading``: the accurate setting, or the deformable-shadow-fields paper's method exactly
+    (:meth:`jshadow.entities.Method.paper`); keys given explicitly override the preset.
+
     ``sh_bands`` n (n² coefficients, 1..8), ``bsv_grid`` (θ, φ) sample points on the bounding sphere
     (Zhou et al. 2005 use 12×20), ``directions`` per sample point, ``dtype`` "float32" | "float64",
     ``shell`` sampling-shell radius over bounding radius (≥ 1; 1 is the paper), ``model`` "paper" |
     "sphere" (extrapolation model), ``radial_samples`` tabulated distances, ``d_range`` their range in
     shell radii, ``bsv_method`` "auto" | "brute" | "edgescan", ``bsv_bands`` bands of the BSV and
-    M_k (≥ ``sh_bands``; default ``sh_bands``), ``shading`` "product" | "ratio" (see
-    :func:`jshadow.scene.combine`).
+    M_k (≥ ``sh_bands``; default ``sh_bands`` + 1, or ``sh_bands`` for the paper), ``shading``
+    "ratio" | "product" (see :func:`jshadow.scene.combine`).
     """
 
+    preset: str = eqx.field(static=True, default="default")
     sh_bands: int = eqx.field(static=True, default=4)
     bsv_grid: tuple[int, int] = eqx.field(static=True, default=(12, 20))
     directions: tuple[int, int] = eqx.field(static=True, default=(32, 32))
     dtype: str = eqx.field(static=True, default="float32")
-    shell: float = eqx.field(static=True, default=1.0)
-    model: str = eqx.field(static=True, default="paper")
+    shell: float = eqx.field(static=True, default=1.5)
+    model: str = eqx.field(static=True, default="sphere")
     radial_samples: int = eqx.field(static=True, default=16)
     d_range: tuple[float, float] = eqx.field(static=True, default=(0.2, 8.0))
     bsv_method: str = eqx.field(static=True, default="auto")
     bsv_bands: int | None = eqx.field(static=True, default=None)
-    shading: str = eqx.field(static=True, default="product")
+    shading: str = eqx.field(static=True, default="ratio")
 
     def __check_init__(self):
         if self.model not in MODELS:
