@@ -10,8 +10,9 @@ is free), on shells inside it both hemispheres. Settings:
 
 * ``paper``: shell R = r; BSV and every shell by the brute-force ray caster
   (:func:`jshadow.visibility.ray_fan_any_hit`);
-* ``shipped``: shell R = 1.5 r; BSV and the shells outside the bounding sphere by the edge-scan
-  (its 32² gnomonic cone image), shells inside it by the brute force over the whole sphere.
+* ``shell1.5``: shell R = 1.5 r (the same square-silhouette M_k, 4 bands); BSV and the shells
+  outside the bounding sphere by the edge-scan (its 32² gnomonic cone image), shells inside it by
+  the brute force over the whole sphere.
 
 Evaluation at receivers: the method interpolates the BSV bilinearly, applies M_k and rotates
 (:func:`jshadow.field.bsv_visibility_sh`); the full field interpolates each shell bilinearly,
@@ -91,7 +92,7 @@ def full_field(vertices, faces, radii, setting: str):
     """(S, T, P, n²) coefficients on every shell (radii in bounding radii, any order)."""
     out = []
     for s in radii:
-        if setting == "shipped" and s > 1.0:
+        if setting == "shell1.5" and s > 1.0:
             out.append(
                 bsv_mesh_edgescan(vertices, faces, n=N_BANDS, grid=GRID, directions=DIRS, shell=s).coeffs
             )
@@ -172,7 +173,7 @@ def main() -> None:
     }
     plane_normals = np.tile([0.0, 1.0, 0.0], (sets["plane"].shape[0], 1))
     out_rows = []
-    for setting, shell, method in (("paper", 1.0, "brute"), ("shipped", 1.5, "edgescan")):
+    for setting, shell, method in (("paper", 1.0, "brute"), ("shell1.5", 1.5, "edgescan")):
         _blocks.cache_clear()
         t0 = time.perf_counter()
         table = mk_table(n=N_BANDS, num=16, d_min=0.2, d_max=8.0, dtype=jnp.float32)
