@@ -12,7 +12,9 @@ from the shell point ``R·u`` (R = ``--shell`` · r; 1 = the paper), and for eac
    square-silhouette rescaling (binary; Fig. 1, bottom row; DESIGN.md §2 for the f_k⁻¹);
 3. **true, SH**: V_d projected onto n bands (what an exact method would give at n bands);
 4. **M_k · S_R**: the base visibility's n-band SH extrapolated with the M_k matrix (Fig. 3; the
-   method's visibility at that receiver before BSV interpolation and rotation).
+   method's visibility at that receiver before BSV interpolation and rotation);
+5. the same with the base visibility and M_k in n + 1 bands, truncated to n afterwards (the
+   library's ``bsv_bands`` default).
 
 Pictures are azimuthal-equidistant views of the local hemisphere facing the occluder (centre of a
 disk = local +z = toward the centre, rim = 90°). Numbers per distance: the solid angle where the
@@ -27,6 +29,8 @@ Usage (repository root, project environment active)::
 
 Writes ``experiments/figures/shrink_<model>[_shell<R>].png`` and
 ``experiments/results/shrink_pictures.json`` (one entry per model/shell, merged with the file).
+``--rescale sphere`` uses the concentric-sphere rescaling of :mod:`jshadow.scaling` instead of the
+paper's square-silhouette f_k (suffix ``_sphere``).
 """
 
 from __future__ import annotations
@@ -80,7 +84,9 @@ def cast(vertices, faces, origin, frame, theta, phi):
     return 1.0 - np.asarray(hit[0], np.float64)
 
 
-def study(model: str, direction, distances, shell: float, n: int, size: int) -> tuple[dict, dict]:
+def study(
+    model: str, direction, distances, shell: float, n: int, size: int, rescale: str = "paper"
+) -> tuple[dict, dict]:
     vertices, faces = unit_mesh(model)
     u, frame = (np.asarray(a, np.float64) for a in bsv_frames(*direction))
     qt, qp, qw = sphere_quadrature()
@@ -91,14 +97,17 @@ def study(model: str, direction, distances, shell: float, n: int, size: int) -> 
     s_unit[0] = math.sqrt(4 * math.pi)
     base_q = cast(vertices, faces, shell * u, frame, qt, qp)
     s_base = y_q.T @ (qw * base_q)
+    y_q1 = np.asarray(sh_basis(jnp.asarray(local_dirs(qt, qp)), n + 1), np.float64)
+    s_base1 = y_q1.T @ (qw * base_q)  # n + 1 bands: extrapolated first, truncated after
     rows, images = [], {}
     for d in distances:
         k = shell / d
         true_q = cast(vertices, faces, d * u, frame, qt, qp)
-        warp_q = np.asarray(f_k(jnp.asarray(qt), jnp.asarray(1.0 / k)), np.float64)
+        warp_q = np.asarray(f_k(jnp.asarray(qt), jnp.asarray(1.0 / k), rescale), np.float64)
         shrunk_q = cast(vertices, faces, shell * u, frame, warp_q, qp)
         s_true = y_q.T @ (qw * true_q)
-        s_mk = mk_matrix(k, n) @ s_base
+        s_mk = mk_matrix(k, n, model=rescale) @ s_base
+        s_mk1 = (mk_matrix(k, n + 1, model=rescale) @ s_base1)[: n * n]
         occ_true = np.sum(qw * (1.0 - true_q))
         occ_norm = math.sqrt(np.sum(qw * (1.0 - true_q) ** 2))
         rows.append(
@@ -109,17 +118,21 @@ def study(model: str, direction, distances, shell: float, n: int, size: int) -> 
                 "shrunk_occluded_sr": float(np.sum(qw * (1.0 - shrunk_q))),
                 "binary_mismatch_rel": float(np.sum(qw * np.abs(true_q - shrunk_q)) / occ_true),
                 "sh_l2_err_rel": float(np.linalg.norm(s_mk - s_true) / np.linalg.norm(s_unit - s_true)),
+                "sh_l2_err_rel_extra_band": float(
+                    np.linalg.norm(s_mk1 - s_true) / np.linalg.norm(s_unit - s_true)
+                ),
                 "sh_truncation_l2_rel": float(
                     math.sqrt(max(np.sum(qw * (true_q - y_q @ s_true) ** 2), 0.0)) / occ_norm
                 ),
             }
         )
-        warp_img = np.asarray(f_k(jnp.asarray(pt.ravel()), jnp.asarray(1.0 / k)), np.float64)
+        warp_img = np.asarray(f_k(jnp.asarray(pt.ravel()), jnp.asarray(1.0 / k), rescale), np.float64)
         images[d] = [
             cast(vertices, faces, d * u, frame, pt.ravel(), pp.ravel()),
             cast(vertices, faces, shell * u, frame, warp_img, pp.ravel()),
             y_img @ s_true,
             y_img @ s_mk,
+            y_img @ s_mk1,
         ]
         images[d] = [np.where(inside, im.reshape(size, size), np.nan) for im in images[d]]
     base_img = np.where(
@@ -128,10 +141,16 @@ def study(model: str, direction, distances, shell: float, n: int, size: int) -> 
     return {"rows": rows, "base_img": base_img}, images
 
 
-def figure(model, shell, n, out, images, path):
-    cols = ["true $V_d$", r"shrunk $V_R(f_{1/k}(\theta), \phi)$", f"true, {n} bands", r"$M_k S_R$"]
+def figure(model, shell, n, out, images, path, rescale="paper"):
+    cols = [
+        "true $V_d$",
+        r"shrunk $V_R(f_{1/k}(\theta), \phi)$",
+        f"true, {n} bands",
+        r"$M_k S_R$",
+        f"$M_k S_R$ in {n + 1} bands, cut to {n}",
+    ]
     ds = list(images)
-    fig, axes = plt.subplots(len(ds), 4, figsize=(7.2, 1.9 * len(ds) + 0.4), dpi=100)
+    fig, axes = plt.subplots(len(ds), 5, figsize=(9.0, 1.9 * len(ds) + 0.4), dpi=100)
     cmap = plt.get_cmap("gray").copy()
     cmap.set_bad("white")
     for i, d in enumerate(ds):
@@ -146,9 +165,12 @@ def figure(model, shell, n, out, images, path):
         axes[i, 0].set_ylabel(f"d = {d:g} r\n(k = {row['k']:.2f})", fontsize=8)
         axes[i, 1].set_xlabel(f"mismatch {100 * row['binary_mismatch_rel']:.0f} %", fontsize=7)
         axes[i, 3].set_xlabel(f"L² err {100 * row['sh_l2_err_rel']:.0f} %", fontsize=7)
+        axes[i, 4].set_xlabel(f"L² err {100 * row['sh_l2_err_rel_extra_band']:.0f} %", fontsize=7)
         axes[i, 2].set_xlabel(f"trunc. {100 * row['sh_truncation_l2_rel']:.0f} %", fontsize=7)
     fig.suptitle(
-        f"{model}: visibility seen from d, base shell R = {shell:g} r (black = occluded)", fontsize=9
+        f"{model}: visibility seen from d, base shell R = {shell:g} r, {rescale} rescaling "
+        "(black = occluded)",
+        fontsize=9,
     )
     fig.tight_layout()
     fig.savefig(path)
@@ -162,19 +184,27 @@ def main() -> None:
     ap.add_argument("--shell", type=float, default=1.0, help="base shell R / r (1 = the paper)")
     ap.add_argument("--direction", type=float, nargs=2, default=[math.pi / 2, 0.0], help="θ φ (radians)")
     ap.add_argument("--bands", type=int, default=4)
+    ap.add_argument(
+        "--rescale", default="paper", choices=("paper", "sphere"), help="f_k model (jshadow.scaling.MODELS)"
+    )
     ap.add_argument("--size", type=int, default=96, help="pixels per picture side")
     args = ap.parse_args()
     if any(d < args.shell for d in args.distances):
         ap.error("--distances must be >= --shell (the shrinking approximation extrapolates outward)")
-    out, images = study(args.model, tuple(args.direction), args.distances, args.shell, args.bands, args.size)
-    suffix = "" if args.shell == 1.0 else f"_shell{args.shell:g}"
+    out, images = study(
+        args.model, tuple(args.direction), args.distances, args.shell, args.bands, args.size, args.rescale
+    )
+    suffix = ("" if args.shell == 1.0 else f"_shell{args.shell:g}") + (
+        "" if args.rescale == "paper" else f"_{args.rescale}"
+    )
     png = FIGURES / f"shrink_{args.model}{suffix}.png"
-    figure(args.model, args.shell, args.bands, out, images, png)
+    figure(args.model, args.shell, args.bands, out, images, png, args.rescale)
     for r in out["rows"]:
         print(
             f"{args.model} R={args.shell:g} d={r['d_over_r']:g}: binary mismatch "
             f"{100 * r['binary_mismatch_rel']:.1f} %, SH L2 err {100 * r['sh_l2_err_rel']:.1f} % "
-            f"(truncation alone {100 * r['sh_truncation_l2_rel']:.1f} %)"
+            f"(n + 1 bands: {100 * r['sh_l2_err_rel_extra_band']:.1f} %; "
+            f"truncation alone {100 * r['sh_truncation_l2_rel']:.1f} %)"
         )
     path = RESULTS / "shrink_pictures.json"
     data = json.loads(path.read_text()) if path.exists() else {}
