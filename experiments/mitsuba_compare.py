@@ -37,11 +37,15 @@ import sys
 import tempfile
 import time
 
-import mitsuba as mi
 import numpy as np
 import pareto
 import trimesh
 from _common import RESULTS, machine
+
+try:
+    import mitsuba as mi
+except ImportError:
+    raise SystemExit("mitsuba_compare.py needs Mitsuba 3: pip install -e .[mitsuba]") from None
 
 mi.set_variant("scalar_rgb")
 T = mi.ScalarTransform4f
