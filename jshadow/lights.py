@@ -416,9 +416,9 @@ def _env_samples(env: Environment, max_rows: int):
     """Radiance·solid angle (P, 3) and unit directions (P, 3) of the environment in lat-long cells.
 
     "hdr": pixels summed in b×b blocks (b the largest divisor of both sides with H/b >= max_rows,
-    or 1; maps of fewer rows are first split into equal sub-pixels), each block at the centroid of its pixels' directions weighted by luminance × solid
-    angle; "sky": a max_rows × 2·max_rows grid of cells at their centres. Every cell's solid angle
-    is exact.
+    or 1; maps of fewer rows are first split into equal sub-pixels), each block at the centroid
+    of its pixels' directions weighted by luminance × solid angle; "sky": a max_rows × 2·max_rows
+    grid of cells at their centres. Every cell's solid angle is exact.
     """
     rad = jnp.asarray(env.radiance)
     if env.kind == "hdr":
