@@ -120,8 +120,12 @@ def mesh_bsv(occ: MeshOccluder, t, scene: Scene, differentiable: bool = True) ->
     v = occ.vertices(t)
     kw = dict(n=m.field_bands, grid=m.bsv_grid, directions=m.directions, shell=m.shell)
     faces = _concrete(occ.faces)
-    if not differentiable or faces is None:
+    if not differentiable:
         return bsv_mesh(v, occ.faces, method=m.bsv_method, **kw)
+    if faces is None:  # the forward pass works; a derivative would silently miss the silhouette term
+        coeffs = _traced_faces_guard(lambda x: bsv_mesh(x, occ.faces, method=m.bsv_method, **kw).coeffs, v)
+        center, radius = bounding_sphere(v)
+        return BSV(coeffs=coeffs, center=center, radius=radius, shell_radius=m.shell * radius)
 
     def forward(x):
         return bsv_mesh(x, faces, method=m.bsv_method, **kw).coeffs
@@ -129,6 +133,28 @@ def mesh_bsv(occ: MeshOccluder, t, scene: Scene, differentiable: bool = True) ->
     coeffs = bsv_mesh_diff(v, faces, forward=forward, slots=_slots(occ, faces, m), nodes=8, **kw)
     center, radius = bounding_sphere(v)
     return BSV(coeffs=coeffs, center=center, radius=radius, shell_radius=m.shell * radius)
+
+
+TRACED_FACES = (
+    "mesh faces are traced (the scene was built inside jax.jit/vmap or passed to it as an argument), "
+    "so the BSV's silhouette derivative cannot be formed: build the scene outside the transformation "
+    "and close over it, keeping only the parameters being differentiated as arguments"
+)
+
+
+def _traced_faces_guard(forward, v):
+    """``forward(v)``, raising :data:`TRACED_FACES` if it is differentiated (instead of a zero
+    derivative through binary visibility)."""
+
+    @jax.custom_jvp
+    def guarded(x):
+        return forward(x)
+
+    @guarded.defjvp
+    def _jvp(primals, tangents):
+        raise ValueError(TRACED_FACES)
+
+    return guarded(v)
 
 
 def _concrete(x):
@@ -151,8 +177,9 @@ def _slots(occ: MeshOccluder, faces: np.ndarray, m) -> int | None:
     key = (hash(unit.tobytes()), hash(faces.tobytes()), m.bsv_grid, m.shell)
     if key not in _SLOTS:
         with jax.ensure_compile_time_eval():
-            counts = bsv_silhouette_counts(unit, faces, grid=m.bsv_grid, shell=m.shell)
-        _SLOTS[key] = int(min(int(1.5 * int(np.max(counts))) + 8, 3 * faces.shape[0] // 2))
+            counts = np.asarray(bsv_silhouette_counts(unit, faces, grid=m.bsv_grid, shell=m.shell))
+        # (np.asarray first: np.max of a jax.Array calls its .max(), which a jit trace would stage)
+        _SLOTS[key] = int(min(int(1.5 * int(counts.max())) + 8, 3 * faces.shape[0] // 2))
     return _SLOTS[key]
 
 

@@ -9,7 +9,7 @@ import trimesh
 
 from jshadow.entities import Environment, MeshOccluder, Method, Receivers, Scene, SphereLight
 from jshadow.geometry import normalize_to_unit_sphere
-from jshadow.scene import render
+from jshadow.scene import mesh_bsv, render
 
 METHOD = Method.paper(bsv_grid=(8, 12), directions=(16, 16))
 
@@ -31,12 +31,13 @@ def plane(n=7, size=3.0):
     return Receivers(jnp.asarray(pts), jnp.asarray(nrm), jnp.full(3, 0.8, jnp.float32), (n, n))
 
 
-def scene_with(deform):
-    m = trimesh.creation.icosphere(subdivisions=1)
-    unit = normalize_to_unit_sphere(jnp.asarray(m.vertices, jnp.float32))
-    occ = MeshOccluder(
-        unit, jnp.asarray(m.faces, jnp.int32), jnp.asarray([0.1, 1.0, 0.0]), jnp.float32(0.5), deform
-    )
+_ICO = trimesh.creation.icosphere(subdivisions=1)
+UNIT = normalize_to_unit_sphere(jnp.asarray(_ICO.vertices, jnp.float32))
+FACES = jnp.asarray(_ICO.faces, jnp.int32)  # built outside any jit: concrete when closed over
+
+
+def scene_with(deform, faces=FACES):
+    occ = MeshOccluder(UNIT, faces, jnp.asarray([0.1, 1.0, 0.0]), jnp.float32(0.5), deform)
     light = SphereLight(jnp.asarray([0.8, 3.0, 0.4]), jnp.float32(0.4), jnp.full(3, 20.0, jnp.float32))
     return Scene(METHOD, plane(), (occ,), (light,), Environment(jnp.full(3, 0.3, jnp.float32)))
 
@@ -45,24 +46,26 @@ def test_uniform_scale_gradient_matches_finite_differences():
     # The BSV of a uniformly scaled mesh is unchanged, so the forward pass is smooth in a and central
     # differences are exact up to rounding; the silhouette term and the motion of the sample points
     # must cancel inside the BSV for the gradient to agree.
+    @jax.jit
     def loss(a):
         return jnp.sum(render(scene_with(Scale(a))).radiance)
 
     a0, h = jnp.float32(0.1), 0.02
-    g = float(jax.grad(loss)(a0))
+    g = float(jax.jit(jax.grad(loss))(a0))
     fd = float((loss(a0 + h) - loss(a0 - h)) / (2 * h))
     assert np.isfinite(g) and abs(fd) > 1e-3
     np.testing.assert_allclose(g, fd, rtol=0.03)
 
 
 def test_light_position_gradient_matches_finite_differences():
+    @jax.jit
     def loss(c):
         s = scene_with(None)
         s = eqx.tree_at(lambda s: s.lights[0].center, s, c)
         return jnp.sum(render(s).radiance)
 
     c0 = jnp.asarray([0.8, 3.0, 0.4])
-    g = np.asarray(jax.grad(loss)(c0))
+    g = np.asarray(jax.jit(jax.grad(loss))(c0))
     for i in range(3):
         e = np.zeros(3, np.float32)
         e[i] = 0.01
@@ -84,18 +87,48 @@ def test_stretch_gradient_comes_from_the_silhouette_and_matches_finite_differenc
     # a = 0 every icosphere vertex ties for the bounding radius, which has a kink there (measured:
     # one-sided derivatives differ by ~75 %), and central differences would average the two sides.
     # On the default 1.5 r shell the silhouette integral needs more directions to converge (16²:
-    # 10 % low, 48²: 1 % against finite differences), so that setting is checked at 48².
-    def loss(a, method):
-        s = scene_with(StretchY(a))
-        s = Scene(method, s.receivers, s.occluders, s.lights, s.environment)
-        return jnp.sum(render(s).radiance)
+    # 10 % low), so that setting's gradient is taken at 48²; its finite differences are noisy at 48²
+    # (binary visibility: ±15 % at h = 0.05), so they use 128² (measured: 0.9 % from the gradient).
+    def loss_with(method):
+        def loss(a):
+            s = scene_with(StretchY(a))
+            s = Scene(method, s.receivers, s.occluders, s.lights, s.environment)
+            return jnp.sum(render(s).radiance)
+
+        return loss
 
     if setting == "paper":
         method, fine = METHOD, Method.paper(bsv_grid=(8, 12), directions=(48, 48))
     else:
-        method = fine = Method(bsv_grid=(8, 12), directions=(48, 48))
+        method = Method(bsv_grid=(8, 12), directions=(48, 48))
+        fine = Method(bsv_grid=(8, 12), directions=(128, 128))
     a0, h = jnp.float32(0.2), 0.05
-    g = float(jax.grad(loss)(a0, method))
-    fd = float((loss(a0 + h, fine) - loss(a0 - h, fine)) / (2 * h))
+    g = float(jax.jit(jax.grad(loss_with(method)))(a0))
+    loss_fine = jax.jit(loss_with(fine))
+    fd = float((loss_fine(a0 + h) - loss_fine(a0 - h)) / (2 * h))
     assert abs(fd) > 1.0
     np.testing.assert_allclose(g, fd, rtol=0.08)
+
+
+def test_jit_of_grad_equals_grad_and_traced_faces_raise():
+    # A scene built outside jit and closed over keeps its faces concrete: under jit (and under
+    # grad of a jitted function) the BSV keeps its silhouette derivative; it equals the eager one.
+    def loss(a, faces=FACES):
+        s = scene_with(StretchY(a), faces)
+        b = mesh_bsv(s.occluders[0], 0.0, s)
+        return jnp.sum(b.coeffs * jnp.arange(b.coeffs.shape[-1], dtype=b.coeffs.dtype))
+
+    a0 = jnp.float32(0.2)
+    want = float(jax.grad(loss)(a0))
+    assert abs(want) > 1.0
+    np.testing.assert_allclose(float(jax.jit(jax.grad(loss))(a0)), want, rtol=1e-4)
+    np.testing.assert_allclose(float(jax.grad(jax.jit(loss))(a0)), want, rtol=1e-4)
+
+    # Faces converted inside the trace are tracers: the forward pass still works, but a derivative
+    # would miss the silhouette term (binary visibility), so it raises instead of returning zero.
+    def traced(a):
+        return loss(a, jnp.asarray(_ICO.faces, jnp.int32))
+
+    np.testing.assert_allclose(float(jax.jit(traced)(a0)), float(loss(a0)), rtol=1e-5)
+    with pytest.raises(ValueError, match="mesh faces are traced"):
+        jax.jit(jax.grad(traced))(a0)

@@ -166,10 +166,12 @@ def test_outputs_finite_with_receivers_on_and_inside_occluders():
     )
     out = render(scene)
     assert np.all(np.isfinite(np.asarray(out.irradiance)))
-    g = jax.grad(
-        lambda c: render(
-            eqx_replace(scene, lights=(SphereLight(c, light.radius, light.radiance),))
-        ).irradiance.sum()
+    g = jax.jit(
+        jax.grad(
+            lambda c: render(
+                eqx_replace(scene, lights=(SphereLight(c, light.radius, light.radiance),))
+            ).irradiance.sum()
+        )
     )(light.center)
     assert np.all(np.isfinite(np.asarray(g)))
     assert math.isfinite(float(out.irradiance.sum()))

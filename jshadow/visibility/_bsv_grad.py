@@ -242,7 +242,8 @@ def bsv_mesh_diff(
         raise ValueError(
             f"shell must be >= 1 (sample points on or outside the bounding sphere), got {shell!r}"
         )
-    table = silhouette_edges_table(faces)
+    with jax.ensure_compile_time_eval():  # concrete even under a trace: the jvp rule closes over it
+        table = silhouette_edges_table(faces)
     k = default_slots(table.num_edges) if slots is None else slots
     _check_static(n, k, nodes)
     n, k, nodes, shell = int(n), int(k), int(nodes), float(shell)
