@@ -214,12 +214,14 @@ def _sky_nodes(n: int, rotation_y: float):
         wy = np.concatenate([0.5 * wt, 0.5 * wt])
         n_phi = 2 * n + 1
         u = (np.arange(n_phi) + 0.5) / n_phi
-        vv, uu = np.meshgrid(np.arccos(y) / math.pi, u, indexing="ij")
-        d = np.asarray(latlong_to_dir(jnp.asarray(uu), jnp.asarray(vv)), np.float64) @ _rot_y(rotation_y).T
+        yy, uu = np.meshgrid(y, u, indexing="ij")
+        # latlong_to_dir's convention, in float64 NumPy whatever JAX's dtype mode (the result is cached)
+        st, phi = np.sqrt(1.0 - yy**2), 2.0 * math.pi * uu
+        d_src = np.stack([st * np.cos(phi), yy, -st * np.sin(phi)], axis=-1).reshape(-1, 3)
+        d = d_src @ _rot_y(rotation_y).T
         wgt = (wy[:, None] * np.full(n_phi, 2.0 * math.pi / n_phi)[None, :]).reshape(-1)
         # radiance_at is evaluated at the *unrotated* direction, the basis at the rotated one
-        d_src = np.asarray(latlong_to_dir(jnp.asarray(uu), jnp.asarray(vv))).reshape(-1, 3)
-        return d.reshape(-1, 3), d_src, wgt
+        return d, d_src, wgt
 
 
 # ---- spherical lights ----------------------------------------------------------------------------

@@ -163,6 +163,7 @@ def test_every_command_reports_bad_config_the_same_way(folder, capsys, command):
     assert main([command, str(cfg), *args[command]]) == 2
     line = _one_line(capsys)
     assert line.startswith(f"jshadow {command}: error: ") and "nan.obj" in line and "non-finite" in line
+    assert line.count("nan.obj") == 1, line  # the file is named once, not by every layer
     assert not (folder / "out").exists()
 
 

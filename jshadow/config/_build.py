@@ -119,7 +119,12 @@ def _unit_mesh(config: Config, i: int, occ: OccluderConfig) -> tuple[np.ndarray,
         raise
     except (ValueError, OSError) as err:
         what = f"cannot load mesh {occ.file}" if occ.file else f"cannot build mesh {occ.shape!r}"
-        raise ConfigError(config.source, where, f"{what}: {err}") from None
+        msg = str(err)
+        head = f"{pathlib.PurePath(occ.file).name}: " if occ.file else None
+        cut = msg.find(head) if head else -1
+        if cut >= 0 and " " not in msg[:cut]:  # geometry errors already name the file
+            msg = msg[cut + len(head) :]
+        raise ConfigError(config.source, where, f"{what}: {msg}") from None
 
 
 @functools.lru_cache(maxsize=16)
