@@ -9,6 +9,10 @@ receiver x is (deformable-shadow-fields paper, Sec. 4.3; DESIGN.md §1.4):
    so the caps around the poles reuse the nearest ring — a limitation of any θ×φ grid);
 3. ``S_d = M_k · S_r`` with ``k = R/d`` and ``M_k`` interpolated linearly in k from the table;
 4. rotation from the local frame at (θ, φ) (z toward the centre) to world: ``D(frame) · S_d``.
+   The frame (:func:`jshadow.visibility.bsv_frames`) is ``R_z(φ) R_y(θ) F₀`` with the constant
+   ``F₀ = diag(1, −1, −1)``, whose D is a diagonal of signs, so the rotation is applied by Euler
+   angles (:func:`jshadow.sh.rotate_zyz`: cosines and sines of mφ, mθ and two constant products)
+   instead of by fitting at rotated directions.
 
 Receivers farther than the largest tabulated distance see no occlusion (visibility 1 = √(4π)·e0);
 those nearer than the smallest use the nearest table entry. Sphere occluders also have an exact
@@ -19,8 +23,11 @@ half-angle asin(r/d) around the direction to its centre.
 from __future__ import annotations
 
 import math
+from functools import lru_cache
 
+import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
 from . import sh
@@ -84,9 +91,21 @@ def bsv_visibility_sh(
     big = jnp.asarray(1e6, d.dtype)
     k = jnp.where(d > 0, bsv.shell_radius / jnp.where(d > 0, d, 1.0), big)
     s_d = mk_apply(table, k, s_r)[..., : n * n]
-    _, frame = bsv_frames(theta, phi)
-    s_w = sh.rotate(s_d, frame)
+    s_w = sh.rotate_zyz(s_d * jnp.asarray(_frame_flip(n), s_d.dtype), phi, theta)  # D(bsv_frames(θ, φ)) s_d
     return jnp.where(mk_in_range(table, k)[..., None], s_w, unit_visibility(d.shape, n, s_w.dtype))
+
+
+@lru_cache(maxsize=16)
+def _frame_flip(n: int) -> np.ndarray:
+    """Diagonal of D(F₀), F₀ = diag(1, −1, −1) = bsv_frames(0, 0): the signs (n²,) that turn the
+    local BSV frame into ``R_z(φ) R_y(θ)`` (see the module docstring)."""
+    with jax.ensure_compile_time_eval():
+        _, f0 = bsv_frames(np.float64(0.0), np.float64(0.0))
+        d = np.asarray(sh.rotation_matrix(jnp.asarray(f0, jnp.float32), n), np.float64)
+    signs = np.round(np.diag(d))
+    if not (np.allclose(d, np.diag(signs), atol=1e-5) and np.all(np.abs(signs) == 1)):
+        raise AssertionError("D(bsv_frames(0, 0)) is not a diagonal of signs")
+    return signs
 
 
 def sphere_visibility_sh(

@@ -153,6 +153,9 @@ def test_field_at_centre_surface_shell_and_poles_is_finite(seed):
 
 
 # --- whole scenes: random meshes, twists, lights inside and touching occluders --------------------
+FACES_J = jnp.asarray(FACES, jnp.int32)
+
+
 def _plane(dtype):
     xs = np.linspace(-1.5, 1.5, N_PLANE)
     x, z = np.meshgrid(xs, xs)
@@ -174,7 +177,7 @@ def _scene(unit, amount, light_center, extra, rot, offset):
     receivers = Receivers(points, normals, jnp.full(3, 0.8, dt))
     mesh = MeshOccluder(
         unit @ rot.T,
-        jnp.asarray(FACES, jnp.int32),
+        FACES_J,  # concrete (not converted inside the jit): the BSV's silhouette derivative needs it
         place(jnp.asarray(OCC_CENTER, dt)),
         jnp.asarray(OCC_RADIUS, dt),
         Twist(amount, amount, axis="y"),

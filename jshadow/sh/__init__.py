@@ -15,6 +15,7 @@ from ._grids import project as project
 from ._grids import project_fn as project_fn
 from ._grids import sphere_grid as sphere_grid
 from ._rotation import rotate as rotate
+from ._rotation import rotate_zyz as rotate_zyz
 from ._rotation import rotation_matrix as rotation_matrix
 from ._triple import gaunt_tensor as gaunt_tensor
 from ._triple import product_matrix as product_matrix

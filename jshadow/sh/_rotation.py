@@ -32,7 +32,7 @@ from jaxtyping import Array, ArrayLike, Float
 from ._basis import _basis_list, sh_bands_of
 from ._grids import _np_sh_basis
 
-__all__ = ["rotation_matrix", "rotate"]
+__all__ = ["rotation_matrix", "rotate", "rotate_zyz"]
 
 # full float32 accuracy on accelerators too (no TF32/bf16 passes in these small products)
 _HIGHEST = jax.lax.Precision.HIGHEST
@@ -156,3 +156,96 @@ def rotate(coeffs: Float[ArrayLike, "... n2"], R: Float[ArrayLike, "... 3 3"]) -
             f_l = sum(coeffs[..., j, None] * ys[j] for j in range(l * l, (l + 1) ** 2))  # f_l(Rᵀ ω_k)
             out.append(jnp.matmul(f_l, jnp.asarray(pinvs[l].T, dtype=R.dtype), precision=_HIGHEST))
     return jnp.concatenate(out, axis=-1)
+
+
+# ---- rotations given by Euler angles (z-y-z) -----------------------------------------------------
+
+
+def _np_rotation_matrix(R: np.ndarray, n: int) -> np.ndarray:
+    """float64 NumPy D(R) (n², n²) by the same fitting method (constant tables, outside any trace)."""
+    w, pinvs = _fit_tables(n)
+    y = _np_sh_basis(w @ np.asarray(R, np.float64), n)  # rows: Y(Rᵀ ω_k)
+    d = np.zeros((n * n, n * n))
+    for l in range(n):
+        sl = slice(l * l, (l + 1) ** 2)
+        d[sl, sl] = pinvs[l] @ y[:, sl]
+    return d
+
+
+def _np_rz(alpha: float) -> np.ndarray:
+    c, s = np.cos(alpha), np.sin(alpha)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+@lru_cache(maxsize=16)
+def _zyz_tables(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Constant tables of :func:`rotate_zyz` (float64): |m| (n²,), the partner index of m ↔ −m and
+    its sign, so that ``D(R_z(α)) c = cos(|m|α) c + sin(|m|α) sign · c[partner]``; and D(Q) with
+    Q = R_x(−90°) (Q e_z = e_y, so ``R_y(β) = Q R_z(β) Qᵀ``)."""
+    alpha = 0.7
+    d = _np_rotation_matrix(_np_rz(alpha), n)
+    mabs = np.zeros(n * n, np.int32)
+    partner = np.arange(n * n, dtype=np.int32)
+    sign = np.zeros(n * n)
+    for l in range(n):
+        for m in range(-l, l + 1):
+            i, j = l * l + l + m, l * l + l - m
+            mabs[i] = abs(m)
+            if m != 0:
+                partner[i] = j
+                sign[i] = d[i, j] / np.sin(abs(m) * alpha)
+    rebuilt = np.cos(mabs * alpha)[:, None] * np.eye(n * n)
+    rebuilt[np.arange(n * n), partner] += np.sin(mabs * alpha) * sign
+    if not np.allclose(rebuilt, d, atol=1e-9):  # the real-SH convention is what this assumes
+        raise AssertionError("D(R_z) does not have the cos/sin(|m|α) structure")
+    q = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])  # R_x(−90°)
+    dq = _np_rotation_matrix(q, n)
+    for arr in (mabs, partner, sign, dq):
+        arr.setflags(write=False)
+    return mabs, partner, sign, dq
+
+
+def _apply_rz(c: Array, angle: Array, n: int) -> Array:
+    mabs, partner, sign, _ = _zyz_tables(n)
+    # cos(mα), sin(mα) for m < n by the angle-addition recurrence (two transcendentals per angle)
+    c1, s1 = jnp.cos(angle), jnp.sin(angle)
+    cs, sn = [jnp.ones_like(c1)], [jnp.zeros_like(s1)]
+    for _ in range(1, n):
+        cs, sn = cs + [cs[-1] * c1 - sn[-1] * s1], sn + [sn[-1] * c1 + cs[-1] * s1]
+    cos_ma, sin_ma = jnp.stack(cs, -1), jnp.stack(sn, -1)  # (..., n)
+    # constant 0/1 and signed-permutation matrices instead of gathers (XLA:CPU gathers are slow)
+    expand = jnp.asarray(np.eye(n)[mabs].T, c.dtype)  # (n, n²)
+    swap = np.zeros((n * n, n * n))
+    swap[partner, np.arange(n * n)] = sign  # (c @ swap)[i] = sign_i c[partner_i]
+    cos_m = jnp.matmul(cos_ma, expand, precision=_HIGHEST)
+    sin_m = jnp.matmul(sin_ma, expand, precision=_HIGHEST)
+    return cos_m * c + sin_m * jnp.matmul(c, jnp.asarray(swap, c.dtype), precision=_HIGHEST)
+
+
+def rotate_zyz(
+    coeffs: Float[ArrayLike, "... n2"],
+    alpha: Float[ArrayLike, "..."],
+    beta: Float[ArrayLike, "..."],
+    gamma: Float[ArrayLike, "..."] | None = None,
+) -> Float[Array, "... n2"]:
+    """Rotate SH coefficients by ``R = R_z(α) R_y(β) R_z(γ)`` (angles in radians): ``D(R) @ coeffs``.
+
+    Same convention as :func:`rotate` (``coeffs(f ∘ Rᵀ)``), cheaper when the rotation is known by
+    its Euler angles: two z rotations cost a cosine and a sine of ``mα`` per order (no basis
+    evaluation), and the y rotation is ``D(Q) D(R_z(β)) D(Q)ᵀ`` with the constant D(Q) of
+    ``Q = R_x(−90°)`` (two n²×n² products with a constant block-diagonal matrix). ``gamma=None``
+    skips the last z rotation. Batch axes of the angles broadcast against those of ``coeffs``.
+    Smooth in the angles (values and gradients finite everywhere); at β = 0 or π the split of a
+    z rotation between α and γ is of course arbitrary.
+    """
+    coeffs = jnp.asarray(coeffs)
+    n = sh_bands_of(coeffs.shape[-1])
+    dtype = jnp.result_type(coeffs.dtype, jnp.asarray(alpha).dtype)
+    c = coeffs.astype(dtype)
+    dq = jnp.asarray(_zyz_tables(n)[3], dtype)
+    if gamma is not None:
+        c = _apply_rz(c, jnp.asarray(gamma, dtype), n)
+    c = jnp.matmul(c, dq, precision=_HIGHEST)  # D(Q)ᵀ c (row-vector form)
+    c = _apply_rz(c, jnp.asarray(beta, dtype), n)
+    c = jnp.matmul(c, dq.T, precision=_HIGHEST)  # D(Q) c
+    return _apply_rz(c, jnp.asarray(alpha, dtype), n)
