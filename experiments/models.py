@@ -80,6 +80,9 @@ VARIANTS = {
     "ratio": dict(shell=1.5, model="paper", bsv_bands=4, shading="ratio"),
     "sphere+ratio": dict(shell=1.5, model="sphere", bsv_bands=4, shading="ratio"),
     "sphere+b5+ratio": dict(shell=1.5, model="sphere", bsv_bands=5, shading="ratio"),
+    # diagnostics: the default with more lighting bands (is the rest of the error band-limited?)
+    "default n6": dict(sh_bands=6, shell=1.5, model="sphere", bsv_bands=7, shading="ratio"),
+    "default n8": dict(sh_bands=8, shell=1.5, model="sphere", bsv_bands=8, shading="ratio"),
 }
 DEFAULT_VARIANT = "sphere+b5+ratio"
 
@@ -181,11 +184,7 @@ def _cases():
         "twisted_airplane_sky": (
             lambda m, r: _scene(
                 m,
-                [
-                    _mesh(
-                        "airplane.obj", (0, 1.1, 0), 0.9, make_deformation("twist", 0.8, axis=(1.0, 0.0, 0.0))
-                    )
-                ],
+                [_mesh("airplane.obj", (0, 1.1, 0), 0.9, make_deformation("twist", 0.8, axis="x"))],
                 env=_sky("sky"),
                 res=r,
             ),
@@ -316,7 +315,7 @@ def plot(results: dict) -> list[str]:
     cols = 4
     rows = -(-len(cases) // cols)
     fig, axes = plt.subplots(rows, cols, figsize=(3.4 * cols, 2.9 * rows), dpi=100, squeeze=False)
-    marks = dict(zip(VARIANTS, "osD^v<>", strict=False))
+    marks = dict(zip(VARIANTS, "osD^v<>Px", strict=False))
     for ax, name in zip(axes.flat, cases, strict=False):
         for label, v in results["cases"][name]["variants"].items():
             ax.scatter(
@@ -415,6 +414,8 @@ def main() -> None:
                 f"excess {e['max_excess_over_unoccluded_pct']:5.2f} %  {warm:7.1f} ms",
                 flush=True,
             )
+        RESULTS.mkdir(parents=True, exist_ok=True)
+        out_path.write_text(json.dumps(results, indent=1))  # after every case: a crash keeps the rest
     results["settings"] = dict(
         res=args.res, target=args.target, max_spp=args.max_spp, default_variant=DEFAULT_VARIANT
     )
