@@ -2,7 +2,7 @@
 
 Usage::
 
-    python benchmarks/bench_render.py [--frames 12] [--json out.json]
+    python benchmarks/bench_render.py [--frames 12] [--json out.json] [--methods default paper paper-shell1.5]
 
 Rows:
 * every shipped config (configs/*.toml, fit configs excluded): warm median per stage;
@@ -21,16 +21,24 @@ import json
 import pathlib
 import platform
 import time
+import tomllib
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jshadow.config import build_scene, load_config
+from jshadow.config import build_scene, config_from_dict
 from jshadow.entities import Environment, Method, Receivers, Scene, SphereOccluder
 from jshadow.runner import Renderer
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
+
+# --methods: [method] keys put over each config's own (the configs leave these to the defaults)
+METHODS = {
+    "default": {},  # shell 1.5, sphere model, n + 1 visibility bands, ratio shading
+    "paper": {"preset": "paper"},  # the paper's method (shell r: brute-force BSV)
+    "paper-shell1.5": {"preset": "paper", "shell": 1.5},  # the paper's model on the 1.5 r shell
+}
 
 
 def run_frames(scene, frames, sphere_path="analytic"):
@@ -78,6 +86,13 @@ def main():
     ap.add_argument("--frames", type=int, default=8)
     ap.add_argument("--json", default=None)
     ap.add_argument("--configs", nargs="*", default=None)
+    ap.add_argument(
+        "--methods",
+        nargs="*",
+        default=["default"],
+        choices=sorted(METHODS),
+        help="[method] settings to time each config with (same run, same frames)",
+    )
     args = ap.parse_args()
     out = {
         "machine": f"{platform.processor() or platform.machine()}, {jax.devices()[0]}",
@@ -87,18 +102,23 @@ def main():
     }
     cfgs = args.configs or sorted(str(p) for p in (ROOT / "configs").glob("*.toml") if "fit" not in p.name)
     for c in cfgs:
-        scene = build_scene(load_config(c))
-        r = run_frames(scene, args.frames)
-        n_occ = max(len(scene.occluders), 1)
-        r["shading_us_per_receiver_per_occluder"] = (
-            1e3 * (r["median_ms"]["field_ms"] + r["median_ms"]["combine_ms"]) / (r["receivers"] * n_occ)
-        )
-        out["configs"][pathlib.Path(c).name] = r
-        print(
-            f"{pathlib.Path(c).name:24s} {r['receivers']:7d} rec  compile {r['compile_s']:5.1f} s  "
-            + "  ".join(f"{k} {v:7.2f}" for k, v in r["median_ms"].items())
-            + f"  fps {r['fps']:6.1f}  shade {r['shading_us_per_receiver_per_occluder']:.3f} µs/rec/occ"
-        )
+        for label in args.methods:
+            d = tomllib.loads(pathlib.Path(c).read_text())
+            d.setdefault("method", {}).update(METHODS[label])
+            scene = build_scene(config_from_dict(d, source=str(c), root=pathlib.Path(c).parent))
+            r = run_frames(scene, args.frames)
+            n_occ = max(len(scene.occluders), 1)
+            r["shading_us_per_receiver_per_occluder"] = (
+                1e3 * (r["median_ms"]["field_ms"] + r["median_ms"]["combine_ms"]) / (r["receivers"] * n_occ)
+            )
+            name = pathlib.Path(c).name + ("" if label == "default" else f" [{label}]")
+            out["configs"][name] = r
+            print(
+                f"{name:40s} {r['receivers']:7d} rec  compile {r['compile_s']:5.1f} s  "
+                + "  ".join(f"{k} {v:7.2f}" for k, v in r["median_ms"].items())
+                + f"  fps {r['fps']:6.1f}  shade {r['shading_us_per_receiver_per_occluder']:.3f} µs/rec/occ",
+                flush=True,
+            )
     for k in (1, 4, 16):
         r = run_frames(many_spheres(k), args.frames, sphere_path="bsv")
         out["occluders"][k] = r

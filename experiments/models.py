@@ -52,12 +52,14 @@ import tomllib
 import jax
 import jax.numpy as jnp
 import matplotlib
+import matplotlib.ticker
 import numpy as np
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 import jshadow  # noqa: E402
+from jshadow import sh  # noqa: E402
 from jshadow.config import build_scene, config_from_dict  # noqa: E402
 from jshadow.config._build import plane_receivers  # noqa: E402
 from jshadow.entities import Environment, MeshOccluder, Method, Scene, SphereLight, SphereOccluder  # noqa: E402
@@ -328,6 +330,10 @@ def plot(results: dict) -> list[str]:
             )
         ax.set_xscale("log")
         ax.set_yscale("log")
+        for axis in (ax.xaxis, ax.yaxis):  # minor-tick labels of short log ranges overlap
+            axis.set_major_locator(matplotlib.ticker.LogLocator(subs=(1.0, 2.0, 5.0)))
+            axis.set_minor_formatter(matplotlib.ticker.NullFormatter())
+            axis.set_major_formatter(matplotlib.ticker.FormatStrFormatter("%g"))
         ax.axhline(1.0, color="0.6", lw=0.8, ls="--")
         ax.set_title(name + ("" if results["cases"][name]["tuned"] is False else " (tuned on)"), fontsize=8)
         ax.set_xlabel("ms per frame (warm)", fontsize=7)
@@ -363,6 +369,50 @@ def plot(results: dict) -> list[str]:
     return [str(p.relative_to(ROOT)) for p in paths]
 
 
+def srf_study() -> dict:
+    """Sphere-light radiance fields (the SRF path) against the closed form, on the light's axis.
+
+    A unit-radiance light of radius 1 at distance d faces a receiver; the exact irradiance is
+    π sin²α = π/d². Rows: the paper's SRF (f_k with its Jacobian, shell 1), the concentric-sphere
+    model without a Jacobian (shell 1 and 1.5, table bands 4, 5 and 8, truncated to 4 after M_k), and
+    the closed-form cap in 4 bands (its only error is the truncated cosine).
+    """
+    from jshadow.lights import sphere_light_sh, sphere_light_srf
+    from jshadow.scaling import mk_table
+
+    dists = [1.6, 2.0, 3.0, 4.0, 6.0, 10.0]
+    settings = {
+        "paper (f_k, Jacobian, shell 1)": ("paper", "radiance_jacobian", 1.0, 4),
+        "sphere model, shell 1, 4 bands": ("sphere", "radiance", 1.0, 4),
+        "sphere model, shell 1.5, 5 bands": ("sphere", "radiance", 1.5, 5),
+        "sphere model, shell 1.5, 8 bands": ("sphere", "radiance", 1.5, 8),
+    }
+    normal = jnp.asarray([0.0, 0.0, 1.0])
+    cosine = sh.clamped_cosine(normal, 4)
+    out = {"distances": dists, "exact": [math.pi / d**2 for d in dists], "relative_error_pct": {}}
+    for name, (model, kind, shell, bands) in settings.items():
+        table = mk_table(n=bands, num=32, d_min=0.2, d_max=16.0, kind=kind, model=model)
+        errs = []
+        for d in dists:
+            l_sh = sphere_light_srf(
+                jnp.asarray([0.0, 0.0, d]), 1.0, jnp.ones(3), jnp.zeros(3), 4, table, shell
+            )
+            errs.append(100 * (float((cosine @ l_sh)[0]) * d**2 / math.pi - 1.0))
+        out["relative_error_pct"][name] = errs
+    cap = [
+        float((cosine @ sphere_light_sh(jnp.asarray([0.0, 0.0, d]), 1.0, jnp.ones(3), jnp.zeros(3), 4))[0])
+        for d in dists
+    ]
+    out["relative_error_pct"]["closed-form cap, 4 bands"] = [
+        100 * (c * d**2 / math.pi - 1.0) for c, d in zip(cap, dists, strict=True)
+    ]
+    for name, errs in out["relative_error_pct"].items():
+        print(
+            f"SRF {name:36s} " + "  ".join(f"d={d:g}: {e:+8.1f} %" for d, e in zip(dists, errs, strict=True))
+        )
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--res", type=int, default=32, help="receiver plane resolution of shipped/untuned scenes")
@@ -372,8 +422,14 @@ def main() -> None:
     ap.add_argument("--variants", nargs="*", default=None)
     ap.add_argument("--runs", type=int, default=3, help="warm frames timed per variant")
     ap.add_argument("--plot-only", action="store_true", help="redraw the figures from models.json")
+    ap.add_argument("--srf-only", action="store_true", help="only the sphere-light SRF study")
     args = ap.parse_args()
     out_path = RESULTS / "models.json"
+    if args.srf_only:
+        results = json.loads(out_path.read_text())
+        results["srf"] = srf_study()
+        out_path.write_text(json.dumps(results, indent=1))
+        return
     if args.plot_only:
         results = json.loads(out_path.read_text())
         results["figures"] = plot(results)
@@ -416,6 +472,7 @@ def main() -> None:
             )
         RESULTS.mkdir(parents=True, exist_ok=True)
         out_path.write_text(json.dumps(results, indent=1))  # after every case: a crash keeps the rest
+    results["srf"] = srf_study()
     results["settings"] = dict(
         res=args.res, target=args.target, max_spp=args.max_spp, default_variant=DEFAULT_VARIANT
     )
