@@ -7,4 +7,7 @@ if [ ! -x .venv/bin/python ]; then "$PY" -m venv .venv; fi
 .venv/bin/python -m pip install -q --upgrade pip
 .venv/bin/python -m pip install -q -e '.[dev,bench]'
 .venv/bin/ruff check jshadow tests experiments benchmarks
-.venv/bin/python -m pytest -q "$@"
+# Two pytest workers, each with single-threaded XLA: on a 2-core machine this is ~1.35x faster than
+# one process whose XLA uses both cores (most test time is compilation, which is single-threaded).
+export XLA_FLAGS="${XLA_FLAGS:-} --xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"
+.venv/bin/python -m pytest -q -n "${PYTEST_WORKERS:-2}" "$@"
