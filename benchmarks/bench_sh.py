@@ -30,6 +30,7 @@ from jshadow.sh import (
     cap,
     product_matrix,
     rotate,
+    rotate_zyz,
     rotation_matrix,
     sh_basis,
     sh_eval,
@@ -103,6 +104,22 @@ def rows_to_md(rows) -> str:
     return "\n".join(out)
 
 
+def _rot_fit(c, theta, phi):
+    from jshadow.visibility import bsv_frames
+
+    return rotate(c, bsv_frames(theta, phi)[1])
+
+
+def _rot_zyz(c, theta, phi):
+    from jshadow.field import _frame_flip
+
+    return rotate_zyz(c * jnp.asarray(_frame_flip(N), c.dtype), phi, theta)
+
+
+def _grad(f):
+    return jax.grad(lambda *a: jnp.sum(f(*a) ** 2), argnums=(0, 1, 2))
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeats", type=int, default=7, help="warm runs per row (median reported), >= 5")
@@ -124,6 +141,8 @@ def main(argv=None) -> int:
     b = jnp.asarray(rng.normal(size=(n_rec, N * N)).astype(np.float32))
     axes = jnp.asarray(_unit(rng, n_rec))
     cos_a = jnp.asarray(rng.uniform(-1, 1, size=n_rec).astype(np.float32))
+    theta = jnp.asarray(rng.uniform(0, np.pi, size=n_rec).astype(np.float32))
+    phi = jnp.asarray(rng.uniform(-np.pi, np.pi, size=n_rec).astype(np.float32))
 
     cases = [
         ("sh_basis (n=4)", n_dirs, lambda d: sh_basis(d, N), (dirs,)),
@@ -135,6 +154,11 @@ def main(argv=None) -> int:
         ("sh_product as dense Gaunt einsum (comparison)", n_rec, _sh_product_dense, (a, b)),
         ("product_matrix (n=4)", n_rec, product_matrix, (a,)),
         ("cap (n=4)", n_rec, lambda ax, t: cap(ax, t, N), (axes, cos_a)),
+        # the field's rotation from the BSV frame at (θ, φ) to world, two ways (and their gradients)
+        ("rotate from (θ, φ): bsv_frames + fitting", n_rec, _rot_fit, (a, theta, phi)),
+        ("rotate from (θ, φ): rotate_zyz (Euler angles)", n_rec, _rot_zyz, (a, theta, phi)),
+        ("grad of Σ rotated² via bsv_frames + fitting", n_rec, _grad(_rot_fit), (a, theta, phi)),
+        ("grad of Σ rotated² via rotate_zyz", n_rec, _grad(_rot_zyz), (a, theta, phi)),
     ]
     rows = []
     load_before = os.getloadavg()
