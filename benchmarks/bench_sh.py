@@ -30,7 +30,6 @@ from jshadow.sh import (
     cap,
     product_matrix,
     rotate,
-    rotate_zyz,
     rotation_matrix,
     sh_basis,
     sh_eval,
@@ -111,9 +110,9 @@ def _rot_fit(c, theta, phi):
 
 
 def _rot_zyz(c, theta, phi):
-    from jshadow.field import _frame_flip
+    from jshadow.field import frame_to_world  # rotate_zyz with the frame's constant flip
 
-    return rotate_zyz(c * jnp.asarray(_frame_flip(N), c.dtype), phi, theta)
+    return frame_to_world(c, theta, phi)
 
 
 def _grad(f):

@@ -9,10 +9,10 @@ receiver x is (deformable-shadow-fields paper, Sec. 4.3; DESIGN.md §1.4):
    so the caps around the poles reuse the nearest ring — a limitation of any θ×φ grid);
 3. ``S_d = M_k · S_r`` with ``k = R/d`` and ``M_k`` interpolated linearly in k from the table;
 4. rotation from the local frame at (θ, φ) (z toward the centre) to world: ``D(frame) · S_d``.
-   The frame (:func:`jshadow.visibility.bsv_frames`) is ``R_z(φ) R_y(θ) F₀`` with the constant
-   ``F₀ = diag(1, −1, −1)``, whose D is a diagonal of signs, so the rotation is applied by Euler
-   angles (:func:`jshadow.sh.rotate_zyz`: cosines and sines of mφ, mθ and two constant products)
-   instead of by fitting at rotated directions.
+   The frame (:func:`jshadow.visibility.bsv_frames`) is ``R_z(φ) R_y(θ) F₀`` with
+   ``F₀ = diag(1, −1, −1)`` (y → −y, z → −z), which multiplies Y_lm by ``(−1)^(l+|m|)`` (the
+   parity of P_l^|m| in z) and by −1 for m < 0 (sin(|m|φ) is odd in y); the rest is applied by
+   Euler angles (:func:`jshadow.sh.rotate_zyz`) instead of by fitting at rotated directions.
 
 Receivers farther than the largest tabulated distance see no occlusion (visibility 1 = √(4π)·e0);
 those nearer than the smallest use the nearest table entry. Sphere occluders also have an exact
@@ -23,9 +23,7 @@ half-angle asin(r/d) around the direction to its centre.
 from __future__ import annotations
 
 import math
-from functools import lru_cache
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
@@ -33,12 +31,13 @@ from jaxtyping import Array, Float
 from . import sh
 from ._numerics import safe_acos, safe_atan2, safe_norm, safe_normalize, safe_sqrt
 from .scaling import MkTable, mk_apply, mk_in_range
-from .visibility import BSV, bsv_frames
+from .visibility import BSV
 
 __all__ = [
     "unit_visibility",
     "interpolate_bsv",
     "bsv_visibility_sh",
+    "frame_to_world",
     "sphere_visibility_sh",
     "sphere_light_blocked",
 ]
@@ -91,21 +90,18 @@ def bsv_visibility_sh(
     big = jnp.asarray(1e6, d.dtype)
     k = jnp.where(d > 0, bsv.shell_radius / jnp.where(d > 0, d, 1.0), big)
     s_d = mk_apply(table, k, s_r)[..., : n * n]
-    s_w = sh.rotate_zyz(s_d * jnp.asarray(_frame_flip(n), s_d.dtype), phi, theta)  # D(bsv_frames(θ, φ)) s_d
+    s_w = frame_to_world(s_d, theta, phi)
     return jnp.where(mk_in_range(table, k)[..., None], s_w, unit_visibility(d.shape, n, s_w.dtype))
 
 
-@lru_cache(maxsize=16)
-def _frame_flip(n: int) -> np.ndarray:
-    """Diagonal of D(F₀), F₀ = diag(1, −1, −1) = bsv_frames(0, 0): the signs (n²,) that turn the
-    local BSV frame into ``R_z(φ) R_y(θ)`` (see the module docstring)."""
-    with jax.ensure_compile_time_eval():
-        _, f0 = bsv_frames(np.float64(0.0), np.float64(0.0))
-        d = np.asarray(sh.rotation_matrix(jnp.asarray(f0, jnp.float32), n), np.float64)
-    signs = np.round(np.diag(d))
-    if not (np.allclose(d, np.diag(signs), atol=1e-5) and np.all(np.abs(signs) == 1)):
-        raise AssertionError("D(bsv_frames(0, 0)) is not a diagonal of signs")
-    return signs
+def frame_to_world(
+    coeffs: Float[Array, "... n2"], theta: Float[Array, "..."], phi: Float[Array, "..."]
+) -> Float[Array, "... n2"]:
+    """``D(bsv_frames(θ, φ)[1]) @ coeffs``: SH in the local BSV frame at (θ, φ) → world (module docstring)."""
+    n = sh.sh_bands_of(coeffs.shape[-1])
+    lm = [sh.sh_lm(i) for i in range(n * n)]
+    sign = np.asarray([(-1.0) ** (l + abs(m)) * (-1.0 if m < 0 else 1.0) for l, m in lm])  # D(F₀)
+    return sh.rotate_zyz(coeffs * jnp.asarray(sign, coeffs.dtype), phi, theta)
 
 
 def sphere_visibility_sh(

@@ -118,13 +118,9 @@ def _unit_mesh(config: Config, i: int, occ: OccluderConfig) -> tuple[np.ndarray,
     except ConfigError:
         raise
     except (ValueError, OSError) as err:
-        what = f"cannot load mesh {occ.file}" if occ.file else f"cannot build mesh {occ.shape!r}"
-        msg = str(err)
-        head = f"{pathlib.PurePath(occ.file).name}: " if occ.file else None
-        cut = msg.find(head) if head else -1
-        if cut >= 0 and " " not in msg[:cut]:  # geometry errors already name the file
-            msg = msg[cut + len(head) :]
-        raise ConfigError(config.source, where, f"{what}: {msg}") from None
+        # load_mesh's errors already name the (resolved) file; procedural shapes are named here
+        msg = str(err) if occ.file else f"cannot build mesh {occ.shape!r}: {err}"
+        raise ConfigError(config.source, where, msg) from None
 
 
 @functools.lru_cache(maxsize=16)
