@@ -10,11 +10,21 @@ derivative and produce NaN. Each helper has a ``jax.grad`` regression test at it
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-__all__ = ["eps", "safe_sqrt", "safe_div", "safe_atan2", "safe_acos", "safe_norm", "safe_normalize"]
+__all__ = [
+    "eps",
+    "safe_sqrt",
+    "safe_div",
+    "safe_atan2",
+    "fast_atan2",
+    "safe_acos",
+    "safe_norm",
+    "safe_normalize",
+]
 
 
 def eps(dtype=None, scale: float = 1.0) -> float:
@@ -49,6 +59,62 @@ def safe_atan2(y: Float[ArrayLike, "..."], x: Float[ArrayLike, "..."]) -> Float[
     zero = (x == 0) & (y == 0)
     x_safe = jnp.where(zero, 1.0, x)
     return jnp.where(zero, 0.0, jnp.arctan2(y, x_safe))
+
+
+# atan(t) ≈ t · Σ_i c_i t^(2i) on [0, 1]: odd polynomial of degree 15 fitted by iteratively reweighted
+# least squares (minimax-like) on 20001 points; max |error| 3.7e-8 rad in exact arithmetic; after the
+# octant reduction in float32, 3.1e-7 rad over all angles (one float32 ulp at ±π; tests/test_numerics.py).
+_ATAN_POLY = (
+    0.99999934,
+    -0.33329861,
+    0.19946564,
+    -0.1390862,
+    0.09642172,
+    -0.05591196,
+    0.02186269,
+    -0.00405449,
+)
+
+
+def _atan2_poly(y: Array, x: Array) -> Array:
+    ax, ay = jnp.abs(x), jnp.abs(y)
+    hi, lo = jnp.maximum(ax, ay), jnp.minimum(ax, ay)
+    t = lo / jnp.where(hi > 0, hi, 1.0)  # in [0, 1]; 0 at the origin
+    s = t * t
+    p = jnp.asarray(_ATAN_POLY[-1], t.dtype)
+    for c in _ATAN_POLY[-2::-1]:
+        p = p * s + c
+    r = p * t
+    r = jnp.where(ay > ax, 0.5 * np.pi - r, r)
+    r = jnp.where(x < 0, np.pi - r, r)
+    return jnp.where(y < 0, -r, r)
+
+
+@jax.custom_jvp
+def fast_atan2(y: Float[ArrayLike, "..."], x: Float[ArrayLike, "..."]) -> Float[Array, "..."]:
+    """atan2(y, x) in (−π, π], 0 at the origin, with the exact derivative and zero gradient there.
+
+    float32 (and narrower) inputs use an odd polynomial after octant reduction (max error 3.1e-7
+    rad, about one float32 ulp at ±π; XLA:CPU's ``atan2`` is about 7× slower, benchmarks/bench_sh.py);
+    float64 inputs use ``jnp.arctan2``. The derivative is the exact ``(x dy − y dx)/(x² + y²)``
+    (not the polynomial's), with a double ``where`` at the origin.
+    """
+    y, x = jnp.asarray(y), jnp.asarray(x)
+    y, x = jnp.broadcast_arrays(*(a.astype(jnp.result_type(y, x, float)) for a in (y, x)))
+    if jnp.finfo(y.dtype).bits > 32:
+        return safe_atan2(y, x)
+    return _atan2_poly(y, x)
+
+
+@fast_atan2.defjvp
+def _fast_atan2_jvp(primals, tangents):
+    y, x = (jnp.asarray(a) for a in primals)
+    dy, dx = (jnp.asarray(a) for a in tangents)
+    out = fast_atan2(y, x)
+    r2 = x * x + y * y
+    ok = r2 > 0
+    inv = jnp.where(ok, 1.0 / jnp.where(ok, r2, 1.0), 0.0)
+    return out, ((x * dy - y * dx) * inv).astype(out.dtype)
 
 
 def safe_acos(c: Float[ArrayLike, "..."]) -> Float[Array, "..."]:

@@ -29,8 +29,8 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from . import sh
-from ._numerics import safe_acos, safe_atan2, safe_norm, safe_normalize, safe_sqrt
-from .scaling import MkTable, mk_apply, mk_in_range
+from ._numerics import fast_atan2, safe_acos, safe_atan2, safe_norm, safe_normalize, safe_sqrt
+from .scaling import MkTable, mk_apply_table, mk_bracket, mk_in_range
 from .visibility import BSV
 
 __all__ = [
@@ -38,6 +38,7 @@ __all__ = [
     "interpolate_bsv",
     "bsv_visibility_sh",
     "frame_to_world",
+    "frame_to_world_cs",
     "sphere_visibility_sh",
     "sphere_light_blocked",
 ]
@@ -55,18 +56,24 @@ def interpolate_bsv(coeffs: Float[Array, "T P n2"], theta, phi) -> Float[Array, 
     [θ_0, θ_{T−1}]. Differentiable in θ, φ and the coefficients.
     """
     t_n, p_n = coeffs.shape[0], coeffs.shape[1]
-    a = jnp.clip(theta * (t_n / math.pi) - 0.5, 0.0, t_n - 1.0)
-    i0 = jnp.clip(jnp.floor(a).astype(jnp.int32), 0, max(t_n - 2, 0))
-    wa = (a - i0.astype(a.dtype))[..., None]
+    i0, j0, j1, wa, wb = _grid_coords(theta, phi, t_n, p_n)
     i1 = jnp.minimum(i0 + 1, t_n - 1)
-    b = jnp.mod(phi * (p_n / (2.0 * math.pi)), float(p_n))
-    j0f = jnp.floor(b)
-    wb = (b - j0f)[..., None]
-    j0 = jnp.mod(j0f.astype(jnp.int32), p_n)
-    j1 = jnp.mod(j0 + 1, p_n)
+    wa, wb = wa[..., None], wb[..., None]
     c00, c01 = coeffs[i0, j0], coeffs[i0, j1]
     c10, c11 = coeffs[i1, j0], coeffs[i1, j1]
     return (1 - wa) * ((1 - wb) * c00 + wb * c01) + wa * ((1 - wb) * c10 + wb * c11)
+
+
+def _grid_coords(theta, phi, t_n: int, p_n: int):
+    """Bilinear cell (i0, j0, j1) and weights (wa, wb) of angles on the BSV's θ×φ grid."""
+    a = jnp.clip(theta * (t_n / math.pi) - 0.5, 0.0, t_n - 1.0)
+    i0 = jnp.clip(jnp.floor(a).astype(jnp.int32), 0, max(t_n - 2, 0))
+    wa = a - i0.astype(a.dtype)
+    b = jnp.mod(phi * (p_n / (2.0 * math.pi)), float(p_n))
+    j0f = jnp.floor(b)
+    wb = b - j0f
+    j0 = jnp.mod(j0f.astype(jnp.int32), p_n)
+    return i0, j0, jnp.mod(j0 + 1, p_n), wa, wb
 
 
 def bsv_visibility_sh(
@@ -79,19 +86,47 @@ def bsv_visibility_sh(
     table must have at least as many. ``bands`` (default: the BSV's) truncates the result after
     M_k and before the rotation (rotations do not mix bands, so this equals truncating at the
     end): a BSV sampled with more bands than the lighting is extrapolated at full resolution.
+
+    Steps 2 and 3 of the module docstring are both linear, so they are done in the other order:
+    every tabulated ``M_{k_t}`` is applied once to every BSV sample (:func:`mk_apply_table`, a
+    (K, T, P, n²) array; 0.2 M multiply-adds for the default 16 × 12 × 20 × 57 entries) and each
+    receiver interpolates that array trilinearly in (k, θ, φ) — the same numbers as interpolating
+    the BSV and M_k separately, without a matrix per receiver. The angles come from
+    :func:`jshadow._numerics.fast_atan2` and the frame rotation from the direction's components
+    (:func:`jshadow.sh.rotate_zyz_cs`), so no other transcendental function is evaluated.
     """
+    t_n, p_n, _ = bsv.coeffs.shape
     n = sh.sh_bands_of(bsv.coeffs.shape[-1]) if bands is None else int(bands)
     rel = points - bsv.center
-    d = safe_norm(rel)
-    u = safe_normalize(rel)
-    theta = safe_acos(u[..., 2])
-    phi = safe_atan2(u[..., 1], u[..., 0])
-    s_r = interpolate_bsv(bsv.coeffs, theta, phi)
-    big = jnp.asarray(1e6, d.dtype)
-    k = jnp.where(d > 0, bsv.shell_radius / jnp.where(d > 0, d, 1.0), big)
-    s_d = mk_apply(table, k, s_r)[..., : n * n]
-    s_w = frame_to_world(s_d, theta, phi)
+    x, y, z = rel[..., 0], rel[..., 1], rel[..., 2]
+    rho2 = x * x + y * y
+    rho, d = safe_sqrt(rho2), safe_sqrt(rho2 + z * z)
+    theta, phi = fast_atan2(rho, z), fast_atan2(y, x)  # θ = 0 at the centre, φ = 0 on the axis
+    off_axis, off_centre = rho > 0, d > 0
+    inv_rho = jnp.where(off_axis, 1.0 / jnp.where(off_axis, rho, 1.0), 0.0)  # double where
+    inv_d = jnp.where(off_centre, 1.0 / jnp.where(off_centre, d, 1.0), 0.0)
+    cos_phi, sin_phi = jnp.where(off_axis, x * inv_rho, 1.0), y * inv_rho
+    cos_theta, sin_theta = jnp.where(off_centre, z * inv_d, 1.0), rho * inv_d
+    k = jnp.where(off_centre, bsv.shell_radius * inv_d, jnp.asarray(1e6, d.dtype))
+
+    ext = mk_apply_table(table, bsv.coeffs, n)  # (K, T, P, n²)
+    flat = ext.reshape(-1, n * n)
+    i0, j0, j1, wa, wb = _grid_coords(theta, phi, t_n, p_n)
+    t0, wk = mk_bracket(table, k)
+    s_d = 0.0
+    for dt, w_t in ((0, 1.0 - wk), (1, wk)):
+        for i, w_i in ((i0, 1.0 - wa), (i0 + 1, wa)):
+            for j, w_j in ((j0, 1.0 - wb), (j1, wb)):
+                w = (w_t * w_i * w_j).astype(flat.dtype)
+                s_d = s_d + w[..., None] * flat[((t0 + dt) * t_n + i) * p_n + j]
+    s_w = frame_to_world_cs(s_d, cos_theta, sin_theta, cos_phi, sin_phi)
     return jnp.where(mk_in_range(table, k)[..., None], s_w, unit_visibility(d.shape, n, s_w.dtype))
+
+
+def _frame_signs(n: int) -> np.ndarray:
+    """Diagonal of D(F₀), F₀ = diag(1, −1, −1): (−1)^(l+|m|), times −1 for m < 0 (module docstring)."""
+    lm = [sh.sh_lm(i) for i in range(n * n)]
+    return np.asarray([(-1.0) ** (l + abs(m)) * (-1.0 if m < 0 else 1.0) for l, m in lm])
 
 
 def frame_to_world(
@@ -99,9 +134,20 @@ def frame_to_world(
 ) -> Float[Array, "... n2"]:
     """``D(bsv_frames(θ, φ)[1]) @ coeffs``: SH in the local BSV frame at (θ, φ) → world (module docstring)."""
     n = sh.sh_bands_of(coeffs.shape[-1])
-    lm = [sh.sh_lm(i) for i in range(n * n)]
-    sign = np.asarray([(-1.0) ** (l + abs(m)) * (-1.0 if m < 0 else 1.0) for l, m in lm])  # D(F₀)
-    return sh.rotate_zyz(coeffs * jnp.asarray(sign, coeffs.dtype), phi, theta)
+    return sh.rotate_zyz(coeffs * jnp.asarray(_frame_signs(n), coeffs.dtype), phi, theta)
+
+
+def frame_to_world_cs(
+    coeffs: Float[Array, "... n2"],
+    cos_theta: Float[Array, "..."],
+    sin_theta: Float[Array, "..."],
+    cos_phi: Float[Array, "..."],
+    sin_phi: Float[Array, "..."],
+) -> Float[Array, "... n2"]:
+    """:func:`frame_to_world` from the cosines and sines of θ and φ (no trigonometric function)."""
+    n = sh.sh_bands_of(coeffs.shape[-1])
+    c = coeffs * jnp.asarray(_frame_signs(n), coeffs.dtype)
+    return sh.rotate_zyz_cs(c, (cos_phi, sin_phi), (cos_theta, sin_theta))
 
 
 def sphere_visibility_sh(

@@ -189,7 +189,7 @@ def occluder_visibilities(
     """Visibility SH (N, n²) and distance (N,) from each receiver to each occluder's centre.
 
     BSV occluders whose coefficient arrays have the same shape are evaluated together under one
-    ``vmap`` (one compiled computation however many occluders there are).
+    ``lax.map`` (one compiled computation however many occluders there are).
     """
     n = scene.method.sh_bands
     table = occlusion_table(scene) if any(b is not None for b in bsvs) else None
@@ -209,7 +209,9 @@ def occluder_visibilities(
             vis[idx[0]], dist[idx[0]] = vs, ds
             continue
         stacked = jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *[bsvs[i] for i in idx])
-        vs = jax.vmap(lambda b: bsv_visibility_sh(b, table, points, n))(stacked)
+        # lax.map, not vmap: batching the field's gathers and small matmuls over occluders measured
+        # 1.6x slower on XLA:CPU than one occluder after another (still compiled once)
+        vs = jax.lax.map(lambda b: bsv_visibility_sh(b, table, points, n), stacked)
         ds = jnp.linalg.norm(points[None] - stacked.center[:, None, :], axis=-1)
         for j, i in enumerate(idx):
             vis[i], dist[i] = vs[j], ds[j]
@@ -219,18 +221,22 @@ def occluder_visibilities(
 def _product(vs: list) -> Float[Array, "N n2"] | None:
     """SH product of several visibilities, truncated to n bands after every factor.
 
-    Up to three factors are multiplied inline; more go through ``lax.scan`` so that the (unrolled,
-    sparse) triple product is compiled once instead of once per occluder.
+    Computed with the coefficient axis first (:func:`jshadow.sh.sh_product_t`; one transpose in and
+    out for the whole chain). Up to three factors are multiplied inline; more go through
+    ``lax.scan`` so that the (unrolled, sparse) triple product is compiled once, not per occluder.
     """
     if not vs:
         return None
+    if len(vs) == 1:
+        return vs[0]
     if len(vs) <= 3:
-        acc = vs[0]
+        acc = vs[0].T
         for v in vs[1:]:
-            acc = sh.sh_product(acc, v)
-        return acc
-    acc, _ = jax.lax.scan(lambda a, v: (sh.sh_product(a, v), None), vs[0], jnp.stack(vs[1:]))
-    return acc
+            acc = sh.sh_product_t(acc, v.T)
+        return acc.T
+    rest = jnp.swapaxes(jnp.stack(vs[1:]), 1, 2)  # (m − 1, n², N)
+    acc, _ = jax.lax.scan(lambda a, v: (sh.sh_product_t(a, v), None), vs[0].T, rest)
+    return acc.T
 
 
 class Lighting(eqx.Module):

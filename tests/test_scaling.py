@@ -20,6 +20,8 @@ from jshadow.scaling import (
     f_k,
     f_k_inverse,
     mk_apply,
+    mk_apply_table,
+    mk_bracket,
     mk_in_range,
     mk_interpolate,
     mk_matrix,
@@ -446,3 +448,38 @@ def test_apply_gradient_finite_at_nodes_and_outside_range(table64):
         assert bool(jnp.all(jnp.isfinite(g_k))) and bool(jnp.all(jnp.isfinite(g_c)))
         np.testing.assert_array_equal(g_k[3:], [0.0, 0.0])  # clamped outside the table
         assert float(jnp.abs(g_k[1])) > 0
+
+
+@pytest.mark.parametrize("shape", BATCH_SHAPES)
+def test_apply_table_and_bracket_equal_apply(shape, table64, rng):
+    # applying every tabulated M_{k_t} once and interpolating the results is mk_apply, exactly
+    with jax.enable_x64(True):
+        ks = np.asarray(table64.ks)
+        k = jnp.asarray(rng.uniform(0.05, 8.0, shape))  # inside and on both sides of the range
+        c = jnp.asarray(rng.normal(size=(*shape, 16)))
+        t, w = mk_bracket(table64, k)
+        assert t.shape == w.shape == shape and t.dtype == jnp.int32
+        assert bool(jnp.all((t >= 0) & (t <= len(ks) - 2) & (w >= 0) & (w <= 1)))
+        np.testing.assert_allclose((1 - w) * ks[t] + w * ks[t + 1], np.clip(np.asarray(k), ks[0], ks[-1]))
+        # one coefficient set for every receiver (the field's case) ...
+        c0 = c.reshape(-1, 16)[0]
+        ext = mk_apply_table(table64, c0)  # (K, 16)
+        assert ext.shape == (len(ks), 16)
+        got = (1 - w)[..., None] * ext[t] + w[..., None] * ext[t + 1]
+        np.testing.assert_allclose(got, mk_apply(table64, k, c0), atol=1e-13)
+        # ... and a batch of sets, truncated to fewer output bands (rows are independent)
+        ext_b = mk_apply_table(table64, c, out_bands=3)
+        assert ext_b.shape == (len(ks), *shape, 9)
+        np.testing.assert_allclose(ext_b[5], mk_apply(table64, ks[5], c)[..., :9], atol=1e-13)
+    with pytest.raises(ValueError, match="out_bands"):
+        mk_apply_table(table64, c0, out_bands=5)
+
+
+@pytest.mark.usefixtures("x64")
+def test_bracket_at_nodes_and_its_gradient(table64):
+    ks = np.asarray(table64.ks)
+    t, w = mk_bracket(table64, jnp.asarray(ks))
+    np.testing.assert_allclose((1 - w) * ks[t] + w * ks[t + 1], ks, rtol=1e-14)
+    g = jax.grad(lambda k: mk_bracket(table64, k)[1])
+    assert float(g(ks[3] * 1.01)) == pytest.approx(1 / (ks[4] - ks[3]), rel=1e-12)
+    assert float(g(ks[-1] * 2)) == 0.0 and float(g(ks[0] / 2)) == 0.0  # clamped

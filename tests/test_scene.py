@@ -195,3 +195,34 @@ def test_grouped_bsv_occluders_equal_one_by_one():
         np.testing.assert_allclose(
             d, np.linalg.norm(np.asarray(pts) - np.asarray(b.center), axis=-1), rtol=1e-6
         )
+
+
+@pytest.mark.parametrize("shape", [(), (1,), (3, 1, 2)])
+def test_field_equals_interpolate_then_extrapolate_then_rotate(shape):
+    # bsv_visibility_sh interpolates M_{k_t}·BSV trilinearly; the textbook order (interpolate the BSV,
+    # interpolate and apply M_k, rotate) must give the same numbers — at the poles, the centre, on
+    # the shell and beyond the table too
+    from jshadow.field import frame_to_world, interpolate_bsv, unit_visibility
+    from jshadow.scaling import mk_apply, mk_in_range, mk_table
+    from jshadow.visibility import BSV
+
+    with jax.enable_x64(True):
+        rng = np.random.default_rng(4)
+        table = mk_table(n=5, num=16, d_min=0.2, d_max=8.0, model="sphere", dtype=jnp.float64)
+        coeffs, center = jnp.asarray(rng.normal(size=(12, 20, 25))), jnp.asarray([0.1, -0.2, 0.3])
+        bsv = BSV(coeffs, center, jnp.asarray(0.8), jnp.asarray(1.2))
+        special = np.array([[0, 0, 2.0], [0, 0, -2.0], [0, 0, 0], [1.2, 0, 0], [0, 30.0, 0], [0.01, 0, 0]])
+        pts = np.concatenate([special, rng.normal(size=(200, 3)) * 3]) + np.asarray(bsv.center)
+        got = bsv_visibility_sh(bsv, table, jnp.asarray(pts), bands=4)
+        rel = pts - np.asarray(bsv.center)
+        d = np.linalg.norm(rel, axis=-1)
+        rho = np.hypot(rel[:, 0], rel[:, 1])
+        th, ph = jnp.asarray(np.arctan2(rho, rel[:, 2])), jnp.asarray(np.arctan2(rel[:, 1], rel[:, 0]))
+        k = jnp.asarray(1.2 / np.maximum(d, 1e-300))
+        want = frame_to_world(mk_apply(table, k, interpolate_bsv(bsv.coeffs, th, ph))[:, :16], th, ph)
+        want = jnp.where(mk_in_range(table, k)[:, None], want, unit_visibility((len(pts),), 4, want.dtype))
+        np.testing.assert_allclose(got, want, atol=1e-12)
+        one = jnp.asarray(pts[7 : 7 + max(1, math.prod(shape))]).reshape(*shape, 3)
+        out = bsv_visibility_sh(bsv, table, one, bands=4)
+        assert out.shape == (*shape, 16)
+        np.testing.assert_allclose(out.reshape(-1, 16), got[7 : 7 + max(1, math.prod(shape))], atol=1e-12)

@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from jshadow._numerics import eps, safe_acos, safe_atan2
-from jshadow.sh import project, rotate, rotate_zyz, rotation_matrix, sh_basis, sphere_grid
+from jshadow.sh import project, rotate, rotate_zyz, rotate_zyz_cs, rotation_matrix, sh_basis, sphere_grid
 
 
 def _random_rot(seed, shape=()):
@@ -241,7 +241,7 @@ def test_rotate_zyz_gradients_match_rotate(beta):
 
 def test_bsv_frame_rotation_by_euler_angles_equals_fitting():
     # the field applies D(bsv_frames(θ, φ)) by Euler angles (frame_to_world); poles and equator included
-    from jshadow.field import frame_to_world
+    from jshadow.field import frame_to_world, frame_to_world_cs
     from jshadow.visibility import bsv_frames
 
     rng = np.random.default_rng(5)
@@ -251,3 +251,18 @@ def test_bsv_frame_rotation_by_euler_angles_equals_fitting():
         ph = jnp.asarray(rng.uniform(-np.pi, np.pi, 200), jnp.float32)
         want = rotate(c, bsv_frames(th, ph)[1])
         np.testing.assert_allclose(frame_to_world(c, th, ph), want, atol=1e-5)
+        # from cosines and sines, as the field calls it
+        cs = (jnp.cos(th), jnp.sin(th), jnp.cos(ph), jnp.sin(ph))
+        np.testing.assert_allclose(frame_to_world_cs(c, *cs), want, atol=1e-5)
+
+
+@pytest.mark.usefixtures("x64")
+@pytest.mark.parametrize("shape", [(), (1,), (3, 1, 2)])
+def test_rotate_zyz_cs_equals_rotate_zyz(shape):
+    rng = np.random.default_rng(11)
+    c = jnp.asarray(rng.normal(size=(*shape, 25)))
+    a, b, g = (jnp.asarray(rng.uniform(-4, 4, shape)) for _ in range(3))
+    pair = lambda x: (jnp.cos(x), jnp.sin(x))  # noqa: E731
+    want = rotate_zyz(c, a, b, g)
+    np.testing.assert_allclose(rotate_zyz_cs(c, pair(a), pair(b), pair(g)), want, atol=1e-13)
+    np.testing.assert_allclose(rotate_zyz_cs(c, pair(a), pair(b)), rotate_zyz(c, a, b), atol=1e-13)

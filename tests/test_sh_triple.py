@@ -7,7 +7,16 @@ import pytest
 from conftest import BATCH_SHAPES
 
 from jshadow._numerics import eps
-from jshadow.sh import gaunt_tensor, product_matrix, project, sh_basis, sh_lm, sh_product, sphere_grid
+from jshadow.sh import (
+    gaunt_tensor,
+    product_matrix,
+    project,
+    sh_basis,
+    sh_lm,
+    sh_product,
+    sh_product_t,
+    sphere_grid,
+)
 from jshadow.sh._triple import _sh_product_dense
 
 
@@ -89,11 +98,21 @@ def test_batch_shapes(rng, shape):
     np.testing.assert_allclose(jnp.einsum("...ik,...k->...i", M, b), p, rtol=tol, atol=tol)
     # one light times a batch of visibilities broadcasts
     assert sh_product(a.reshape(-1, 16)[0], b).shape == (*shape, 16)
+    # coefficient axis first: the same numbers, also truncated and broadcast
+    a_t, b_t = jnp.moveaxis(a, -1, 0), jnp.moveaxis(b, -1, 0)
+    np.testing.assert_allclose(jnp.moveaxis(sh_product_t(a_t, b_t), 0, -1), p, rtol=tol, atol=tol)
+    p9 = sh_product_t(a_t, a.reshape(-1, 16)[0].reshape(16, *([1] * len(shape))), n_out=3)
+    assert p9.shape == (9, *shape)
+    np.testing.assert_allclose(
+        jnp.moveaxis(p9, 0, -1), sh_product(a, a.reshape(-1, 16)[0], n_out=3), rtol=tol, atol=tol
+    )
 
 
 def test_bad_input():
     with pytest.raises(ValueError, match="same number"):
         sh_product(jnp.ones(9), jnp.ones(16))
+    with pytest.raises(ValueError, match="as many"):
+        sh_product_t(jnp.ones((9, 2)), jnp.ones((16, 2)))
     with pytest.raises(ValueError, match="square"):
         sh_product(jnp.ones(8), jnp.ones(8))
     with pytest.raises(ValueError, match="positive integers"):

@@ -8,6 +8,8 @@ coefficients extrapolate as ``S_d = M_k S_r``.
 from ._matrices import KINDS as KINDS
 from ._matrices import MkTable as MkTable
 from ._matrices import mk_apply as mk_apply
+from ._matrices import mk_apply_table as mk_apply_table
+from ._matrices import mk_bracket as mk_bracket
 from ._matrices import mk_in_range as mk_in_range
 from ._matrices import mk_interpolate as mk_interpolate
 from ._matrices import mk_matrix as mk_matrix

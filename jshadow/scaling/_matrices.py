@@ -48,6 +48,8 @@ __all__ = [
     "mk_table",
     "mk_interpolate",
     "mk_apply",
+    "mk_apply_table",
+    "mk_bracket",
     "mk_in_range",
 ]
 
@@ -248,7 +250,7 @@ def mk_table(
     )
 
 
-def _interp_values(table: MkTable, k: Array, dtype) -> Array:
+def _interp_values(table: MkTable, k: Array, dtype, sel: tuple[int, ...] | None = None) -> Array:
     """Entries (..., nnz) of M_k, linear in k between table points, clamped to [k_min, k_max].
 
     The interpolation weights are hat functions of k over the K table points, so the entries are
@@ -257,6 +259,8 @@ def _interp_values(table: MkTable, k: Array, dtype) -> Array:
     """
     ks = table.ks.astype(dtype)
     vals = table.values.astype(dtype)
+    if sel is not None:  # only these entries (..., len(sel))
+        vals = vals[:, np.asarray(sel, np.int32)]
     n_k = ks.shape[0]
     first = np.arange(n_k) == 0
     last = np.arange(n_k) == n_k - 1
@@ -296,9 +300,10 @@ def mk_apply(
 ) -> Float[Array, "... n2"]:
     """``M_k @ coeffs`` for batches of ratios k (...) and coefficients (..., n'²), n' <= table.n.
 
-    Never forms the dense matrix: interpolates the table's non-zero entries at k and accumulates
-    one product per entry (41 multiply-adds for n = 4), which XLA fuses into a single elementwise
-    pass (about 8× faster than the dense form for 1e5 receivers on CPU). k and coeffs broadcast
+    Never forms the dense matrix: interpolates the table's non-zero entries at k, multiplies each by
+    its input coefficient (41 products for n = 4) and sums them into rows with a constant 0/1
+    matrix (faster than the dense form for 1e5 receivers on CPU, benchmarks/bench_sh.py). When one
+    coefficient set serves many ratios, :func:`mk_apply_table` is cheaper still. k and coeffs broadcast
     over leading axes; computed in coeffs' dtype (the table is cast).
     Coefficient vectors with fewer bands than the table use its leading n'² × n'² block (the same
     integrals). Differentiable in k (inside the table's range) and in coeffs.
@@ -312,15 +317,74 @@ def mk_apply(
     dtype = coeffs.dtype
     k = jnp.asarray(k).astype(dtype)
     batch = jnp.broadcast_shapes(k.shape, coeffs.shape[:-1])
-    v = _interp_values(table, jnp.broadcast_to(k, batch), dtype)
+    sel, scatter = _entries(table, nb, nb)
+    v = _interp_values(table, jnp.broadcast_to(k, batch), dtype, sel)
     c = jnp.broadcast_to(coeffs, (*batch, nb * nb))
-    acc: list = [None] * (nb * nb)
-    for e, (i, j) in enumerate(zip(table.rows, table.cols)):
-        if i >= nb * nb or j >= nb * nb:
-            continue
-        term = v[..., e] * c[..., j]
-        acc[i] = term if acc[i] is None else acc[i] + term
-    return jnp.stack(acc, axis=-1)
+    cols = np.asarray([table.cols[e] for e in sel], np.int32)
+    # (entries · gathered inputs) @ 0/1 row-scatter matrix: one pass over (..., nnz) instead of one
+    # strided pass per output coefficient (XLA:CPU fused each stacked output separately)
+    return jnp.matmul(v * c[..., cols], jnp.asarray(scatter, dtype), precision=jax.lax.Precision.HIGHEST)
+
+
+@lru_cache(maxsize=64)
+def _entries_cached(rows: tuple, cols: tuple, out_n2: int, in_n2: int) -> tuple[tuple[int, ...], np.ndarray]:
+    sel = tuple(e for e, (i, j) in enumerate(zip(rows, cols)) if i < out_n2 and j < in_n2)
+    scatter = np.zeros((len(sel), out_n2))
+    scatter[np.arange(len(sel)), [rows[e] for e in sel]] = 1.0
+    scatter.setflags(write=False)
+    return sel, scatter
+
+
+def _entries(table: MkTable, out_bands: int, in_bands: int) -> tuple[tuple[int, ...], np.ndarray]:
+    """Indices of the table entries mapping the first in_bands² inputs to the first out_bands²
+    outputs, and the (len, out_bands²) 0/1 matrix summing the entries' products into rows."""
+    return _entries_cached(table.rows, table.cols, out_bands * out_bands, in_bands * in_bands)
+
+
+def mk_apply_table(
+    table: MkTable, coeffs: Float[ArrayLike, "... n2"], out_bands: int | None = None
+) -> Float[Array, "K ... m2"]:
+    """``M_{k_t} @ coeffs`` at every tabulated ratio k_t (leading axis K), truncated to out_bands².
+
+    M_k is linear in k between table points (:func:`mk_apply`), so for any k in the table's range
+    ``M_k @ c = (1 − w) · (M_{k_t} @ c) + w · (M_{k_t+1} @ c)`` with ``(t, w) = mk_bracket(table, k)``.
+    When one coefficient set serves many receivers (the BSV samples of an occluder), applying
+    every tabulated matrix once and interpolating the results per receiver is exact and skips the
+    per-receiver matrix interpolation and product. ``out_bands`` (default: the input's) keeps only
+    the first out_bands² output rows (rows are independent, so this equals truncating afterwards).
+    """
+    coeffs = jnp.asarray(coeffs)
+    if not jnp.issubdtype(coeffs.dtype, jnp.floating):
+        raise ValueError(f"coeffs must be a floating-point array, got dtype {coeffs.dtype}")
+    nb = sh_bands_of(coeffs.shape[-1])
+    if nb > table.n:
+        raise ValueError(f"coeffs have {nb} SH bands but the M_k table only {table.n}; build a larger table")
+    m = nb if out_bands is None else int(out_bands)
+    if not 1 <= m <= table.n:
+        raise ValueError(f"out_bands must be in 1..{table.n}, got {out_bands}")
+    sel, scatter = _entries(table, m, nb)
+    dtype = coeffs.dtype
+    vals = table.values.astype(dtype)[:, np.asarray(sel, np.int32)]  # (K, E)
+    cs = coeffs[..., np.asarray([table.cols[e] for e in sel], np.int32)]  # (..., E)
+    prod = vals.reshape(vals.shape[0], *([1] * (coeffs.ndim - 1)), -1) * cs[None]
+    return jnp.matmul(prod, jnp.asarray(scatter, dtype), precision=jax.lax.Precision.HIGHEST)
+
+
+def mk_bracket(table: MkTable, k: Float[ArrayLike, "..."]) -> tuple[Array, Float[Array, "..."]]:
+    """Table interval and weight of ratios k: ``(t, w)`` with ``k = (1 − w) k_t + w k_{t+1}``.
+
+    k is clamped to [k_0, k_{K−1}] first (so ``w`` has zero derivative outside the range, as in
+    :func:`mk_apply`); ``t`` is an int32 index in [0, K − 2] found by K comparisons (no search).
+    Differentiable in k through ``w``.
+    """
+    k = jnp.asarray(k)
+    dtype = _float_dtype(k, table.ks)
+    ks = table.ks.astype(dtype)
+    n_k = ks.shape[0]
+    kc = jnp.clip(k.astype(dtype), ks[0], ks[-1])
+    t = jnp.clip(jnp.sum(kc[..., None] >= ks, axis=-1, dtype=jnp.int32) - 1, 0, n_k - 2)
+    lo, hi = ks[t], ks[t + 1]
+    return t, (kc - lo) / (hi - lo)  # table ratios are strictly ascending: no 0/0
 
 
 def mk_in_range(table: MkTable, k: Float[ArrayLike, "..."]) -> Bool[Array, "..."]:

@@ -16,10 +16,12 @@ from ._grids import project_fn as project_fn
 from ._grids import sphere_grid as sphere_grid
 from ._rotation import rotate as rotate
 from ._rotation import rotate_zyz as rotate_zyz
+from ._rotation import rotate_zyz_cs as rotate_zyz_cs
 from ._rotation import rotation_matrix as rotation_matrix
 from ._triple import gaunt_tensor as gaunt_tensor
 from ._triple import product_matrix as product_matrix
 from ._triple import sh_product as sh_product
+from ._triple import sh_product_t as sh_product_t
 from ._zonal import cap as cap
 from ._zonal import clamped_cosine as clamped_cosine
 from ._zonal import zonal_cap as zonal_cap

@@ -32,7 +32,7 @@ from jaxtyping import Array, ArrayLike, Float
 from ._basis import _basis_list, sh_bands_of
 from ._grids import _np_sh_basis
 
-__all__ = ["rotation_matrix", "rotate", "rotate_zyz"]
+__all__ = ["rotation_matrix", "rotate", "rotate_zyz", "rotate_zyz_cs"]
 
 # full float32 accuracy on accelerators too (no TF32/bf16 passes in these small products)
 _HIGHEST = jax.lax.Precision.HIGHEST
@@ -205,13 +205,13 @@ def _zyz_tables(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
     return mabs, partner, sign, dq
 
 
-def _apply_rz(c: Array, angle: Array, n: int) -> Array:
+def _apply_rz(c: Array, cos1: Array, sin1: Array, n: int) -> Array:
+    """``D(R_z(α)) c`` from cos α and sin α (batch axes of the angle broadcast against c's)."""
     mabs, partner, sign, _ = _zyz_tables(n)
-    # cos(mα), sin(mα) for m < n by the angle-addition recurrence (two transcendentals per angle)
-    c1, s1 = jnp.cos(angle), jnp.sin(angle)
-    cs, sn = [jnp.ones_like(c1)], [jnp.zeros_like(s1)]
+    # cos(mα), sin(mα) for m < n by the angle-addition recurrence (no transcendental at all)
+    cs, sn = [jnp.ones_like(cos1)], [jnp.zeros_like(sin1)]
     for _ in range(1, n):
-        cs, sn = cs + [cs[-1] * c1 - sn[-1] * s1], sn + [sn[-1] * c1 + cs[-1] * s1]
+        cs, sn = cs + [cs[-1] * cos1 - sn[-1] * sin1], sn + [sn[-1] * cos1 + cs[-1] * sin1]
     cos_ma, sin_ma = jnp.stack(cs, -1), jnp.stack(sn, -1)  # (..., n)
     # constant 0/1 and signed-permutation matrices instead of gathers (XLA:CPU gathers are slow)
     expand = jnp.asarray(np.eye(n)[mabs].T, c.dtype)  # (n, n²)
@@ -220,6 +220,35 @@ def _apply_rz(c: Array, angle: Array, n: int) -> Array:
     cos_m = jnp.matmul(cos_ma, expand, precision=_HIGHEST)
     sin_m = jnp.matmul(sin_ma, expand, precision=_HIGHEST)
     return cos_m * c + sin_m * jnp.matmul(c, jnp.asarray(swap, c.dtype), precision=_HIGHEST)
+
+
+def rotate_zyz_cs(
+    coeffs: Float[ArrayLike, "... n2"],
+    cos_sin_alpha: tuple[Float[ArrayLike, "..."], Float[ArrayLike, "..."]],
+    cos_sin_beta: tuple[Float[ArrayLike, "..."], Float[ArrayLike, "..."]],
+    cos_sin_gamma: tuple[Float[ArrayLike, "..."], Float[ArrayLike, "..."]] | None = None,
+) -> Float[Array, "... n2"]:
+    """:func:`rotate_zyz` with each Euler angle given by its (cosine, sine) pair.
+
+    For callers that already hold them (a direction's components give cos θ, sin θ, cos φ, sin φ
+    with a division each), this skips every trigonometric function. The pairs are not
+    renormalised: pass (cos, sin) of a real angle.
+    """
+    coeffs = jnp.asarray(coeffs)
+    n = sh_bands_of(coeffs.shape[-1])
+    pairs = [cos_sin_alpha, cos_sin_beta] + ([cos_sin_gamma] if cos_sin_gamma is not None else [])
+    dtype = jnp.result_type(coeffs.dtype, *(jnp.asarray(v).dtype for p in pairs for v in p))
+    ca, sa = (jnp.asarray(v, dtype) for v in cos_sin_alpha)
+    cb, sb = (jnp.asarray(v, dtype) for v in cos_sin_beta)
+    c = coeffs.astype(dtype)
+    dq = jnp.asarray(_zyz_tables(n)[3], dtype)
+    if cos_sin_gamma is not None:
+        cg, sg = (jnp.asarray(v, dtype) for v in cos_sin_gamma)
+        c = _apply_rz(c, cg, sg, n)
+    c = jnp.matmul(c, dq, precision=_HIGHEST)  # D(Q)ᵀ c (row-vector form)
+    c = _apply_rz(c, cb, sb, n)
+    c = jnp.matmul(c, dq.T, precision=_HIGHEST)  # D(Q) c
+    return _apply_rz(c, ca, sa, n)
 
 
 def rotate_zyz(
@@ -239,13 +268,7 @@ def rotate_zyz(
     z rotation between α and γ is of course arbitrary.
     """
     coeffs = jnp.asarray(coeffs)
-    n = sh_bands_of(coeffs.shape[-1])
     dtype = jnp.result_type(coeffs.dtype, jnp.asarray(alpha).dtype)
-    c = coeffs.astype(dtype)
-    dq = jnp.asarray(_zyz_tables(n)[3], dtype)
-    if gamma is not None:
-        c = _apply_rz(c, jnp.asarray(gamma, dtype), n)
-    c = jnp.matmul(c, dq, precision=_HIGHEST)  # D(Q)ᵀ c (row-vector form)
-    c = _apply_rz(c, jnp.asarray(beta, dtype), n)
-    c = jnp.matmul(c, dq.T, precision=_HIGHEST)  # D(Q) c
-    return _apply_rz(c, jnp.asarray(alpha, dtype), n)
+    cs = [(jnp.cos(a), jnp.sin(a)) for a in (jnp.asarray(x, dtype) for x in (alpha, beta))]
+    csg = None if gamma is None else (jnp.cos(jnp.asarray(gamma, dtype)), jnp.sin(jnp.asarray(gamma, dtype)))
+    return rotate_zyz_cs(coeffs.astype(dtype), cs[0], cs[1], csg)

@@ -27,7 +27,7 @@ from jaxtyping import Array, ArrayLike, Float
 from ._basis import sh_bands_of
 from ._grids import _np_sh_basis, _np_sphere_grid
 
-__all__ = ["gaunt_tensor", "sh_product", "product_matrix"]
+__all__ = ["gaunt_tensor", "sh_product", "sh_product_t", "product_matrix"]
 
 # full float32 accuracy on accelerators too (no TF32/bf16 passes in these small products)
 _HIGHEST = jax.lax.Precision.HIGHEST
@@ -99,9 +99,11 @@ def sh_product(
         n_out: bands of the result (default n); ``2n − 1`` makes the product exact.
 
     Returns:
-        (..., n_out²) coefficients ``Σ_jk G[i,j,k] a_j b_k``. Implemented as one fused, unrolled
-        sum over the non-zero Gaunt coefficients (symmetric pairs merged), which measured faster
-        on CPU than a dense einsum or a gather/segment-sum (see ``benchmarks/bench_sh.py``).
+        (..., n_out²) coefficients ``Σ_jk G[i,j,k] a_j b_k``. Implemented as one unrolled sum over
+        the non-zero Gaunt coefficients (symmetric pairs merged), computed with the coefficient
+        axis first (:func:`sh_product_t`) so that every term reads contiguous rows; measured faster
+        on CPU than a dense einsum, a gather/segment-sum or the same sum over the last axis
+        (``benchmarks/bench_sh.py``).
     """
     a, b = jnp.asarray(a), jnp.asarray(b)
     n = _check_coeffs("a", a)
@@ -109,17 +111,43 @@ def sh_product(
         raise ValueError(f"a and b must have the same number of SH coefficients, got {a.shape} and {b.shape}")
     n, n_out = _check_bands(n, n_out)
     shape = jnp.broadcast_shapes(a.shape[:-1], b.shape[:-1])
+    a_t = jnp.moveaxis(jnp.broadcast_to(a, (*shape, n * n)), -1, 0)
+    b_t = jnp.moveaxis(jnp.broadcast_to(b, (*shape, n * n)), -1, 0)
+    return jnp.moveaxis(_product_rows(a_t, b_t, n, n_out), 0, -1)
+
+
+def sh_product_t(
+    a: Float[ArrayLike, "n2 ..."], b: Float[ArrayLike, "n2 ..."], n_out: int | None = None
+) -> Float[Array, "m2 ..."]:
+    """:func:`sh_product` with the coefficient axis *first*: (n², ...) × (n², ...) → (n_out², ...).
+
+    For chains of products over many receivers (several occluders' visibilities), keeping this
+    layout between products avoids a transpose per product: 3.6× faster than the last-axis form
+    for 25600 receivers on XLA:CPU (``benchmarks/bench_sh.py``). Batch axes broadcast.
+    """
+    a, b = jnp.asarray(a), jnp.asarray(b)
+    if a.ndim < 1 or b.ndim < 1:
+        raise ValueError(f"a and b must have shape (n², ...), got {a.shape} and {b.shape}")
+    n = sh_bands_of(a.shape[0])
+    if b.shape[0] != a.shape[0]:
+        raise ValueError(f"a and b must have as many SH coefficients on axis 0, got {a.shape}, {b.shape}")
+    n, n_out = _check_bands(n, n_out)
+    return _product_rows(a, b, n, n_out)
+
+
+def _product_rows(a: Array, b: Array, n: int, n_out: int) -> Array:
+    shape = jnp.broadcast_shapes(a.shape[1:], b.shape[1:])
     zero = jnp.zeros(shape, jnp.result_type(a, b))
     out = []
     for terms in _product_terms(n, n_out):
         acc = zero
         for v, j, k in terms:
             if j == k:
-                acc = acc + v * (a[..., j] * b[..., j])
+                acc = acc + v * (a[j] * b[j])
             else:
-                acc = acc + v * (a[..., j] * b[..., k] + a[..., k] * b[..., j])
+                acc = acc + v * (a[j] * b[k] + a[k] * b[j])
         out.append(acc)
-    return jnp.stack(out, axis=-1)
+    return jnp.stack(out, axis=0)
 
 
 def _sh_product_dense(a: Array, b: Array, n_out: int | None = None) -> Array:
