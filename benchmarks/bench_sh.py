@@ -26,6 +26,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jshadow._numerics import fast_atan2
 from jshadow.sh import (
     cap,
     product_matrix,
@@ -34,6 +35,7 @@ from jshadow.sh import (
     sh_basis,
     sh_eval,
     sh_product,
+    sh_product_t,
 )
 from jshadow.sh._triple import _sh_product_dense
 
@@ -115,6 +117,41 @@ def _rot_zyz(c, theta, phi):
     return frame_to_world(c, theta, phi)
 
 
+def _product_via_t(a, b):
+    """sh_product_t with transposes in and out (comparison: the layout change for one product)."""
+    return sh_product_t(a.T, b.T).T
+
+
+def _sq(f):
+    return lambda c, p: jnp.sum(f(c, p) ** 2)
+
+
+def _field_cases(rng, n_rec):
+    """The field at receivers (BSV 12×20 in 5 bands → 4, 16-distance table): shipped vs textbook order."""
+    from jshadow.field import bsv_visibility_sh, frame_to_world, interpolate_bsv
+    from jshadow.scaling import mk_apply, mk_table
+    from jshadow.visibility import BSV
+
+    table = mk_table(n=5, num=16, d_min=0.2, d_max=8.0, model="sphere", dtype=jnp.float32)
+    coeffs = jnp.asarray(rng.normal(size=(12, 20, 25)).astype(np.float32))
+    pts = jnp.asarray(rng.uniform(-3, 3, size=(n_rec, 3)).astype(np.float32))
+
+    def shipped(c, p):
+        return bsv_visibility_sh(BSV(c, jnp.zeros(3), jnp.float32(0.8), jnp.float32(1.2)), table, p, 4)
+
+    def textbook(c, p):  # interpolate the BSV, interpolate and apply M_k, rotate (no range test)
+        d = jnp.linalg.norm(p, axis=-1)
+        th, ph = jnp.arccos(jnp.clip(p[:, 2] / d, -1, 1)), jnp.arctan2(p[:, 1], p[:, 0])
+        return frame_to_world(mk_apply(table, 1.2 / d, interpolate_bsv(c, th, ph))[:, :16], th, ph)
+
+    return [
+        ("field: bsv_visibility_sh (shipped)", n_rec, shipped, (coeffs, pts)),
+        ("field: interpolate, mk_apply, rotate (textbook order)", n_rec, textbook, (coeffs, pts)),
+        ("grad of Σ field² w.r.t. the BSV (shipped)", n_rec, jax.grad(_sq(shipped)), (coeffs, pts)),
+        ("grad of Σ field² w.r.t. the BSV (textbook order)", n_rec, jax.grad(_sq(textbook)), (coeffs, pts)),
+    ]
+
+
 def _grad(f):
     return jax.grad(lambda *a: jnp.sum(f(*a) ** 2), argnums=(0, 1, 2))
 
@@ -151,6 +188,10 @@ def main(argv=None) -> int:
         ("rotate (n=4, no D formed)", n_rec, rotate, (a, rots)),
         ("sh_product (unrolled sparse, n=4)", n_rec, sh_product, (a, b)),
         ("sh_product as dense Gaunt einsum (comparison)", n_rec, _sh_product_dense, (a, b)),
+        ("sh_product_t with transposes in and out (comparison)", n_rec, _product_via_t, (a, b)),
+        ("sh_product_t (coefficient axis first, inputs (16, N))", n_rec, sh_product_t, (a.T, b.T)),
+        ("jnp.arctan2, float32 (comparison)", n_dirs, jnp.arctan2, (dirs[:, 1], dirs[:, 0])),
+        ("fast_atan2, float32", n_dirs, fast_atan2, (dirs[:, 1], dirs[:, 0])),
         ("product_matrix (n=4)", n_rec, product_matrix, (a,)),
         ("cap (n=4)", n_rec, lambda ax, t: cap(ax, t, N), (axes, cos_a)),
         # the field's rotation from the BSV frame at (θ, φ) to world, two ways (and their gradients)
@@ -159,6 +200,7 @@ def main(argv=None) -> int:
         ("grad of Σ rotated² via bsv_frames + fitting", n_rec, _grad(_rot_fit), (a, theta, phi)),
         ("grad of Σ rotated² via rotate_zyz", n_rec, _grad(_rot_zyz), (a, theta, phi)),
     ]
+    cases += _field_cases(rng, n_rec)
     rows = []
     load_before = os.getloadavg()
     for name, size, fn, fargs in cases:

@@ -29,7 +29,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from . import sh
-from ._numerics import fast_atan2, safe_acos, safe_atan2, safe_norm, safe_normalize, safe_sqrt
+from ._numerics import fast_acos, fast_atan2, safe_norm, safe_normalize, safe_sqrt
 from .scaling import MkTable, mk_apply_table, mk_bracket, mk_in_range
 from .visibility import BSV
 
@@ -169,7 +169,7 @@ def sphere_visibility_sh(
 def _cap_angle(radius, d):
     """Half-angle asin(r/d) of a sphere of radius r seen from distance d (π/2 from inside)."""
     s = jnp.clip(radius / jnp.maximum(d, radius), 0.0, 1.0)
-    return safe_atan2(s, safe_sqrt(1.0 - s * s))
+    return fast_atan2(s, safe_sqrt(1.0 - s * s))
 
 
 def sphere_light_blocked(
@@ -200,7 +200,7 @@ def sphere_light_blocked(
     d_o, d_l = safe_norm(rel_o), safe_norm(rel_l)
     a, b = _cap_angle(occ_radius, d_o), _cap_angle(light_radius, d_l)
     cos_g = jnp.clip(jnp.sum(safe_normalize(rel_o) * safe_normalize(rel_l), -1), -1.0, 1.0)
-    g = safe_acos(cos_g)
+    g = fast_acos(cos_g)
     omega_b = 2.0 * math.pi * (1.0 - jnp.cos(b))
     omega_a = 2.0 * math.pi * (1.0 - jnp.cos(a))
     part = (g < a + b) & (g > jnp.abs(a - b))
@@ -210,9 +210,9 @@ def sphere_light_blocked(
     sa, sb, sg = jnp.sin(a_p), jnp.sin(b_p), jnp.sin(g_p)
     lens = 2.0 * (
         math.pi
-        - ca * safe_acos(jnp.clip((cb - ca * cg) / (sa * sg), -1.0, 1.0))
-        - cb * safe_acos(jnp.clip((ca - cb * cg) / (sb * sg), -1.0, 1.0))
-        - safe_acos(jnp.clip((cg - ca * cb) / (sa * sb), -1.0, 1.0))
+        - ca * fast_acos(jnp.clip((cb - ca * cg) / (sa * sg), -1.0, 1.0))
+        - cb * fast_acos(jnp.clip((ca - cb * cg) / (sb * sg), -1.0, 1.0))
+        - fast_acos(jnp.clip((cg - ca * cb) / (sa * sb), -1.0, 1.0))
     )
     overlap = jnp.where(part, lens, jnp.where(g <= a - b, omega_b, jnp.where(g <= b - a, omega_a, 0.0)))
     frac = jnp.clip(overlap / jnp.where(omega_b > 0, omega_b, 1.0), 0.0, 1.0)

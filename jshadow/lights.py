@@ -27,7 +27,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from . import sh
-from ._numerics import safe_acos, safe_atan2, safe_div, safe_norm, safe_normalize, safe_sqrt
+from ._numerics import fast_acos, fast_atan2, safe_div, safe_norm, safe_normalize, safe_sqrt
 from .entities import Environment, dir_to_latlong, latlong_to_dir
 from .scaling import MkTable, mk_apply
 
@@ -384,7 +384,7 @@ def sphere_light_irradiance(
     x = safe_div(safe_sqrt(1.0 - s_p * s_p), s_p, fill=0.0)
     y = jnp.clip(safe_div(-x * c_p, sin_b, fill=0.0), -1.0, 1.0)
     q = sin_b * safe_sqrt(1.0 - y * y)
-    e_cut = (c_p * safe_acos(y) - x * q) * s_p * s_p + safe_atan2(q, x)
+    e_cut = (c_p * fast_acos(y) - x * q) * s_p * s_p + fast_atan2(q, x)
     e = jnp.where(above, math.pi * s * s * c, jnp.where(part, e_cut, 0.0))
     e = jnp.where(d > radius, e, math.pi)
     return jnp.maximum(e, 0.0)[..., None] * jnp.asarray(radiance)

@@ -7,6 +7,7 @@ import pytest
 
 from jshadow._numerics import (
     eps,
+    fast_acos,
     fast_atan2,
     safe_acos,
     safe_atan2,
@@ -95,3 +96,16 @@ def test_fast_atan2_float64_and_exact_derivative():
     assert [float(v) for v in g] == [0.0, 0.0]
     g32 = jax.grad(fast_atan2, argnums=(0, 1))(jnp.float32(0.0), jnp.float32(0.0))
     assert [float(v) for v in g32] == [0.0, 0.0]
+
+
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
+def test_fast_acos_matches_and_is_finite_at_the_ends(dtype):
+    with jax.enable_x64(dtype == jnp.float64):
+        c = jnp.asarray(np.r_[np.linspace(-1, 1, 4001), [1.0 + 1e-6, -1.0 - 1e-6]], dtype)
+        tol = 4e-7 if dtype == jnp.float32 else 1e-14
+        np.testing.assert_allclose(fast_acos(c), safe_acos(c), atol=tol)
+        for end in (1.0, -1.0):
+            g = jax.grad(fast_acos)(jnp.asarray(end, dtype))
+            assert np.isfinite(g)
+        g = jax.grad(fast_acos)(jnp.asarray(0.3, dtype))
+        np.testing.assert_allclose(g, -1 / np.sqrt(1 - 0.09), rtol=1e-6)

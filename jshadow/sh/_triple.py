@@ -100,10 +100,9 @@ def sh_product(
 
     Returns:
         (..., n_out²) coefficients ``Σ_jk G[i,j,k] a_j b_k``. Implemented as one unrolled sum over
-        the non-zero Gaunt coefficients (symmetric pairs merged), computed with the coefficient
-        axis first (:func:`sh_product_t`) so that every term reads contiguous rows; measured faster
-        on CPU than a dense einsum, a gather/segment-sum or the same sum over the last axis
-        (``benchmarks/bench_sh.py``).
+        the non-zero Gaunt coefficients (symmetric pairs merged), which measured faster on CPU than
+        a dense einsum or a gather/segment-sum (see ``benchmarks/bench_sh.py``). For chains of
+        products over many receivers, :func:`sh_product_t` (coefficient axis first) is faster.
     """
     a, b = jnp.asarray(a), jnp.asarray(b)
     n = _check_coeffs("a", a)
@@ -111,9 +110,17 @@ def sh_product(
         raise ValueError(f"a and b must have the same number of SH coefficients, got {a.shape} and {b.shape}")
     n, n_out = _check_bands(n, n_out)
     shape = jnp.broadcast_shapes(a.shape[:-1], b.shape[:-1])
-    a_t = jnp.moveaxis(jnp.broadcast_to(a, (*shape, n * n)), -1, 0)
-    b_t = jnp.moveaxis(jnp.broadcast_to(b, (*shape, n * n)), -1, 0)
-    return jnp.moveaxis(_product_rows(a_t, b_t, n, n_out), 0, -1)
+    zero = jnp.zeros(shape, jnp.result_type(a, b))
+    out = []
+    for terms in _product_terms(n, n_out):
+        acc = zero
+        for v, j, k in terms:
+            if j == k:
+                acc = acc + v * (a[..., j] * b[..., j])
+            else:
+                acc = acc + v * (a[..., j] * b[..., k] + a[..., k] * b[..., j])
+        out.append(acc)
+    return jnp.stack(out, axis=-1)
 
 
 def sh_product_t(
@@ -121,9 +128,10 @@ def sh_product_t(
 ) -> Float[Array, "m2 ..."]:
     """:func:`sh_product` with the coefficient axis *first*: (n², ...) × (n², ...) → (n_out², ...).
 
-    For chains of products over many receivers (several occluders' visibilities), keeping this
-    layout between products avoids a transpose per product: 3.6× faster than the last-axis form
-    for 25600 receivers on XLA:CPU (``benchmarks/bench_sh.py``). Batch axes broadcast.
+    Each term then reads contiguous rows: about 2× faster than :func:`sh_product` for 1e5 receivers on
+    XLA:CPU (``benchmarks/bench_sh.py``), but converting to and from this layout costs about as
+    much as it saves for a single product, so it pays off for chains (several occluders'
+    visibilities multiplied in turn). Batch axes broadcast.
     """
     a, b = jnp.asarray(a), jnp.asarray(b)
     if a.ndim < 1 or b.ndim < 1:
