@@ -105,6 +105,13 @@ def occluder_bsv(
     raise TypeError(f"unknown occluder type {type(occ).__name__}")
 
 
+@eqx.filter_jit
+def _vertices_at(occ: MeshOccluder, t) -> Float[Array, "V 3"]:
+    """World vertices at time t as one compiled call (eagerly, a deformation is many small dispatches:
+    0.64 → 0.09 ms for the twisting bunny)."""
+    return occ.vertices(t)
+
+
 def mesh_bsv(occ: MeshOccluder, t, scene: Scene, differentiable: bool = True) -> BSV:
     """BSV of one mesh occluder at time t (deformed vertices, per-frame bounding sphere).
 
@@ -117,7 +124,7 @@ def mesh_bsv(occ: MeshOccluder, t, scene: Scene, differentiable: bool = True) ->
     the custom-derivative wrapper (which traces its primal and so loses the edge-scan's staging).
     """
     m = scene.method
-    v = occ.vertices(t)
+    v = _vertices_at(occ, jnp.asarray(t, occ.unit_vertices.dtype))  # an array: one compile for all t
     kw = dict(n=m.field_bands, grid=m.bsv_grid, directions=m.directions, shell=m.shell)
     faces = _concrete(occ.faces)
     if not differentiable:
