@@ -96,7 +96,7 @@ def fast_atan2(y: Float[ArrayLike, "..."], x: Float[ArrayLike, "..."]) -> Float[
     """atan2(y, x) in (−π, π], 0 at the origin, with the exact derivative and zero gradient there.
 
     float32 (and narrower) inputs use an odd polynomial after octant reduction (max error 3.1e-7
-    rad, about one float32 ulp at ±π; XLA:CPU's ``atan2`` is about 7× slower, benchmarks/bench_sh.py);
+    rad, about one float32 ulp at ±π; XLA:CPU's ``atan2`` measured 7–16× slower, benchmarks/bench_sh.py);
     float64 inputs use ``jnp.arctan2``. The derivative is the exact ``(x dy − y dx)/(x² + y²)``
     (not the polynomial's), with a double ``where`` at the origin.
     """

@@ -61,11 +61,15 @@ def _receivers(scene, t):
 
 @eqx.filter_jit
 def _fields(scene, bsvs, points):
-    return occluder_visibilities(scene, bsvs, points)
+    vis, dist = occluder_visibilities(scene, bsvs, points)
+    # one (m, N, n²) array across the jit boundary, not m: inside _combine the product chain re-stacks
+    # the visibilities, and XLA elides stacking slices of one array but must copy m separate buffers
+    return (jnp.stack(vis), jnp.stack(dist)) if vis else (vis, dist)
 
 
 @eqx.filter_jit
 def _combine(scene, points, normals, vis, dist, lighting, analytic_spheres):
+    vis, dist = list(vis), list(dist)  # (m, ...) arrays or empty lists -> lists of m arrays
     e = combine(scene, points, normals, vis, dist, lighting, analytic_spheres)
     return e, e * (scene.receivers.albedo / math.pi)
 
