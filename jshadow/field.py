@@ -115,7 +115,7 @@ def bsv_visibility_sh(
     t0, wk = mk_bracket(table, k)
     s_d = 0.0
     for dt, w_t in ((0, 1.0 - wk), (1, wk)):
-        for i, w_i in ((i0, 1.0 - wa), (i0 + 1, wa)):
+        for i, w_i in ((i0, 1.0 - wa), (jnp.minimum(i0 + 1, t_n - 1), wa)):  # one ring: wa = 0
             for j, w_j in ((j0, 1.0 - wb), (j1, wb)):
                 w = (w_t * w_i * w_j).astype(flat.dtype)
                 s_d = s_d + w[..., None] * flat[((t0 + dt) * t_n + i) * p_n + j]

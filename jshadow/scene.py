@@ -217,7 +217,7 @@ def occluder_visibilities(
             continue
         stacked = jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *[bsvs[i] for i in idx])
         # lax.map, not vmap: batching the field's gathers and small matmuls over occluders measured
-        # 1.6x slower on XLA:CPU than one occluder after another (still compiled once)
+        # 1.35x slower on XLA:CPU than one occluder after another (still compiled once)
         vs = jax.lax.map(lambda b: bsv_visibility_sh(b, table, points, n), stacked)
         ds = jnp.linalg.norm(points[None] - stacked.center[:, None, :], axis=-1)
         for j, i in enumerate(idx):

@@ -222,6 +222,12 @@ def test_field_equals_interpolate_then_extrapolate_then_rotate(shape):
         want = frame_to_world(mk_apply(table, k, interpolate_bsv(bsv.coeffs, th, ph))[:, :16], th, ph)
         want = jnp.where(mk_in_range(table, k)[:, None], want, unit_visibility((len(pts),), 4, want.dtype))
         np.testing.assert_allclose(got, want, atol=1e-12)
+        # a single ring of samples (T = 1): the second θ row is the same ring, with weight 0
+        thin = BSV(coeffs[:1, :5], center, jnp.asarray(0.8), jnp.asarray(1.2))
+        want1 = frame_to_world(mk_apply(table, k, interpolate_bsv(thin.coeffs, th, ph))[:, :16], th, ph)
+        want1 = jnp.where(mk_in_range(table, k)[:, None], want1, unit_visibility((len(pts),), 4, want1.dtype))
+        got1 = bsv_visibility_sh(thin, table, jnp.asarray(pts), bands=4)
+        np.testing.assert_allclose(got1, want1, atol=1e-12)
         one = jnp.asarray(pts[7 : 7 + max(1, math.prod(shape))]).reshape(*shape, 3)
         out = bsv_visibility_sh(bsv, table, one, bands=4)
         assert out.shape == (*shape, 16)
