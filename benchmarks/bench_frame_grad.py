@@ -33,6 +33,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from bench_bsv_grad import _time as _time_stats  # the script's folder is on sys.path
 
 from jshadow.config import build_scene, load_config
 from jshadow.entities import MeshOccluder, frame_time
@@ -44,16 +45,9 @@ DEFAULT = ["configs/egg_breathing.toml", "configs/airplane_bend.toml", "configs/
 
 
 def _time(fn, *args, runs):
-    t0 = time.perf_counter()
-    jax.block_until_ready(fn(*args))
-    first = time.perf_counter() - t0
-    times = []
-    for _ in range(runs):
-        t0 = time.perf_counter()
-        jax.block_until_ready(fn(*args))
-        times.append(time.perf_counter() - t0)
-    med = float(np.median(times))
-    return max(first - med, 0.0), 1e3 * med
+    """(compile s, warm median ms) with the timing helper of bench_bsv_grad.py."""
+    t = _time_stats(fn, *args, runs=runs)
+    return t["compile_s"], 1e3 * t["median_s"]
 
 
 def bench(path: str, runs: int) -> dict:

@@ -107,8 +107,7 @@ def occluder_bsv(
 
 @eqx.filter_jit
 def _vertices_at(occ: MeshOccluder, t) -> Float[Array, "V 3"]:
-    """World vertices at time t as one compiled call (eagerly, a deformation is many small dispatches:
-    0.64 → 0.09 ms for the twisting bunny)."""
+    """World vertices at time t as one compiled call (eagerly, a deformation is many small dispatches)."""
     return occ.vertices(t)
 
 
@@ -216,8 +215,8 @@ def occluder_visibilities(
             vis[idx[0]], dist[idx[0]] = vs, ds
             continue
         stacked = jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *[bsvs[i] for i in idx])
-        # lax.map, not vmap: batching the field's gathers and small matmuls over occluders measured
-        # 1.35x slower on XLA:CPU than one occluder after another (still compiled once)
+        # lax.map, not vmap: batching the field's gathers and small matmuls over occluders was slower
+        # on XLA:CPU than one occluder after another (bench_render.py, 16 occluders: field 88 -> 65 ms)
         vs = jax.lax.map(lambda b: bsv_visibility_sh(b, table, points, n), stacked)
         ds = jnp.linalg.norm(points[None] - stacked.center[:, None, :], axis=-1)
         for j, i in enumerate(idx):
