@@ -112,7 +112,7 @@ def _rot_fit(c, theta, phi):
 
 
 def _rot_zyz(c, theta, phi):
-    from jshadow.field import frame_to_world  # rotate_zyz with the frame's constant flip
+    from jshadow.field import frame_to_world  # Euler-angle rotation with the frame's constant flip
 
     return frame_to_world(c, theta, phi)
 

@@ -133,8 +133,8 @@ def frame_to_world(
     coeffs: Float[Array, "... n2"], theta: Float[Array, "..."], phi: Float[Array, "..."]
 ) -> Float[Array, "... n2"]:
     """``D(bsv_frames(θ, φ)[1]) @ coeffs``: SH in the local BSV frame at (θ, φ) → world (module docstring)."""
-    n = sh.sh_bands_of(coeffs.shape[-1])
-    return sh.rotate_zyz(coeffs * jnp.asarray(_frame_signs(n), coeffs.dtype), phi, theta)
+    theta, phi = jnp.asarray(theta), jnp.asarray(phi)
+    return frame_to_world_cs(coeffs, jnp.cos(theta), jnp.sin(theta), jnp.cos(phi), jnp.sin(phi))
 
 
 def frame_to_world_cs(
