@@ -13,7 +13,8 @@ same receivers:
 * ``forward``: ``L(δ) = Σ w · irradiance`` of :func:`jshadow.scene.render_at` with per-vertex offsets δ
   (V, 3) added to the mesh's rest pose, w fixed random weights — the differentiable forward pass;
 * ``value_and_grad``: ``jax.value_and_grad(L)`` at δ = 0, the visibility-correct vertex gradient
-  (silhouette-edge term of the BSV, differentiable field and combination).
+  (silhouette-edge term of the BSV, differentiable field and combination), with the silhouette
+  visibility of ``[method] bsv_gradient`` (``--bsv-gradient raycast image`` times both).
 
 Compile time (first call minus warm median) is reported separately; warm figures are medians of
 ``--runs`` calls with ``block_until_ready``. "backward / forward" is (value_and_grad − forward) /
@@ -28,6 +29,7 @@ import os
 import pathlib
 import platform
 import time
+import tomllib
 
 import equinox as eqx
 import jax
@@ -35,7 +37,7 @@ import jax.numpy as jnp
 import numpy as np
 from bench_bsv_grad import _time as _time_stats  # the script's folder is on sys.path
 
-from jshadow.config import build_scene, load_config
+from jshadow.config import build_scene, config_from_dict
 from jshadow.entities import MeshOccluder, frame_time
 from jshadow.runner import Renderer
 from jshadow.scene import render_at
@@ -50,8 +52,10 @@ def _time(fn, *args, runs):
     return t["compile_s"], 1e3 * t["median_s"]
 
 
-def bench(path: str, runs: int) -> dict:
-    scene = build_scene(load_config(ROOT / path))
+def bench(path: str, runs: int, bsv_gradient: str = "raycast") -> dict:
+    d = tomllib.loads((ROOT / path).read_text())
+    d.setdefault("method", {})["bsv_gradient"] = bsv_gradient
+    scene = build_scene(config_from_dict(d, source=path, root=(ROOT / path).parent))
     occ = scene.occluders[0]
     if not isinstance(occ, MeshOccluder):
         raise SystemExit(f"{path}: the first occluder is not a mesh")
@@ -76,6 +80,7 @@ def bench(path: str, runs: int) -> dict:
     g = np.asarray(vag(delta)[1])
     row = {
         "config": path,
+        "bsv_gradient": bsv_gradient,
         "frame": frame,
         "vertices": int(occ.unit_vertices.shape[0]),
         "faces": int(occ.faces.shape[0]),
@@ -91,7 +96,7 @@ def bench(path: str, runs: int) -> dict:
         "gradient_norm": float(np.linalg.norm(g)),
     }
     print(
-        f"{path:32s} V={row['vertices']:5d} rec={n_rec:6d}  render {render_ms:7.1f} ms"
+        f"{path:32s} {bsv_gradient:7s} V={row['vertices']:5d} rec={n_rec:6d}  render {render_ms:7.1f} ms"
         f"  forward {fwd_ms:7.1f} ms"
         f"  value_and_grad {vag_ms:8.1f} ms  backward/forward {row['backward_over_forward']:5.2f}"
         f"  compile {c_f:4.1f} / {c_g:4.1f} s",
@@ -105,9 +110,16 @@ def main(argv=None) -> int:
     ap.add_argument("--configs", nargs="*", default=DEFAULT)
     ap.add_argument("--runs", type=int, default=5)
     ap.add_argument("--json", type=pathlib.Path)
+    ap.add_argument(
+        "--bsv-gradient",
+        nargs="*",
+        default=["raycast"],
+        choices=["raycast", "image"],
+        help="[method] bsv_gradient settings to time (same run)",
+    )
     args = ap.parse_args(argv)
     load = os.getloadavg()[0]
-    rows = [bench(c, args.runs) for c in args.configs]
+    rows = [bench(c, args.runs, g) for c in args.configs for g in args.bsv_gradient]
     meta = {
         "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
         "machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores",

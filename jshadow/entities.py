@@ -40,6 +40,7 @@ __all__ = [
 
 
 SHADINGS = ("product", "ratio")
+BSV_GRADIENTS = ("raycast", "image")
 
 
 @dataclass(frozen=True)
@@ -61,6 +62,12 @@ class Method:
     * ``shading`` — "product" (Zhou et al. 2005: every term an n-band SH product) or "ratio"
       (exact unoccluded irradiance times the SH estimate's occluded/unoccluded ratio; exact sphere
       occluder/sphere light overlap): see :func:`jshadow.scene.combine`.
+
+    ``bsv_gradient`` chooses how the BSV's vertex derivative (its silhouette-edge term) decides which
+    silhouette points are visible: "raycast" (default; rays against the mesh,
+    :func:`jshadow.visibility.bsv_mesh_diff`) or "image" (read off the edge-scan's own occlusion
+    images, :func:`jshadow.visibility.bsv_mesh_edgescan_diff`: tens of times faster, exact on convex
+    meshes, biased on finely tessellated self-occluding ones; BENCHMARKS.md "BSV gradients").
     """
 
     sh_bands: int = 4  # n: n² coefficients
@@ -74,6 +81,7 @@ class Method:
     bsv_method: str = "auto"  # "auto" | "brute" | "edgescan"
     bsv_bands: int | None = None  # bands of the BSV and M_k (None: sh_bands + 1, at most 8)
     shading: str = "ratio"  # "ratio" | "product" (Zhou et al. 2005, the paper)
+    bsv_gradient: str = "raycast"  # "raycast" | "image" (silhouette visibility of the BSV derivative)
 
     @classmethod
     def paper(cls, **options) -> Method:
@@ -113,6 +121,13 @@ class Method:
             raise ValueError(f"method.shading must be one of {SHADINGS}, got {self.shading!r}")
         if self.bsv_method not in ("auto", "brute", "edgescan"):
             raise ValueError(f"method.bsv_method must be auto, brute or edgescan, got {self.bsv_method!r}")
+        if self.bsv_gradient not in BSV_GRADIENTS:
+            raise ValueError(f"method.bsv_gradient must be one of {BSV_GRADIENTS}, got {self.bsv_gradient!r}")
+        if self.bsv_gradient == "image" and (self.shell <= 1.0 or self.bsv_method == "brute"):
+            raise ValueError(
+                "method.bsv_gradient = 'image' reads visibility off the edge-scan's images: it needs "
+                f"shell > 1 and bsv_method 'auto' or 'edgescan' (got shell {self.shell}, {self.bsv_method!r})"
+            )
 
 
 class SphereOccluder(eqx.Module):

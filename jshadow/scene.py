@@ -42,7 +42,17 @@ from .lights import (
     sphere_light_sh,
 )
 from .scaling import MkTable, mk_table
-from .visibility import BSV, bsv_mesh, bsv_mesh_diff, bsv_silhouette_counts, bsv_sphere
+from .visibility import (
+    BSV,
+    bsv_mesh,
+    bsv_mesh_diff,
+    bsv_mesh_edgescan_diff,
+    bsv_silhouette_counts,
+    bsv_sphere,
+    edgescan_grad_slots,
+    edgescan_slots,
+    is_closed_manifold,
+)
 
 __all__ = [
     "RenderResult",
@@ -133,6 +143,17 @@ def mesh_bsv(occ: MeshOccluder, t, scene: Scene, differentiable: bool = True) ->
         center, radius = bounding_sphere(v)
         return BSV(coeffs=coeffs, center=center, radius=radius, shell_radius=m.shell * radius)
 
+    if m.bsv_gradient == "image":
+        if not is_closed_manifold(faces):
+            raise ValueError(
+                "method.bsv_gradient = 'image' needs the edge-scan sampler, i.e. a closed, consistently "
+                "wound manifold mesh; this occluder's mesh is not (use bsv_gradient = 'raycast')"
+            )
+        slots, grad_slots = _image_slots(occ, faces, m)
+        coeffs = bsv_mesh_edgescan_diff(v, faces, slots=slots, grad_slots=grad_slots, **kw)
+        center, radius = bounding_sphere(v)
+        return BSV(coeffs=coeffs, center=center, radius=radius, shell_radius=m.shell * radius)
+
     def forward(x):
         return bsv_mesh(x, faces, method=m.bsv_method, **kw).coeffs
 
@@ -186,6 +207,23 @@ def _slots(occ: MeshOccluder, faces: np.ndarray, m) -> int | None:
             counts = np.asarray(bsv_silhouette_counts(unit, faces, grid=m.bsv_grid, shell=m.shell))
         # (np.asarray first: np.max of a jax.Array calls its .max(), which a jit trace would stage)
         _SLOTS[key] = int(min(int(1.5 * int(counts.max())) + 8, 3 * faces.shape[0] // 2))
+    return _SLOTS[key]
+
+
+def _image_slots(occ: MeshOccluder, faces: np.ndarray, m):
+    """Edge-scan slots and derivative slots for ``bsv_gradient = "image"``: measured on the rest pose
+    (the image is scale- and translation-invariant) with a 1.5 margin, cached; (None, None) when
+    the rest pose is not concrete (generous defaults, slower)."""
+    unit = _concrete(occ.unit_vertices)
+    if unit is None:
+        return None, None
+    key = ("image", hash(unit.tobytes()), hash(faces.tobytes()), m.bsv_grid, m.directions, m.shell)
+    if key not in _SLOTS:
+        with jax.ensure_compile_time_eval():
+            _SLOTS[key] = (
+                edgescan_slots(unit, faces, m.bsv_grid, m.directions, m.shell),
+                edgescan_grad_slots(unit, faces, m.bsv_grid, m.shell),
+            )
     return _SLOTS[key]
 
 

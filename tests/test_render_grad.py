@@ -80,7 +80,7 @@ class StretchY(eqx.Module):
         return x * jnp.asarray([1.0, 1.0 + self.a, 1.0])
 
 
-@pytest.mark.parametrize("setting", ["paper", "default"])
+@pytest.mark.parametrize("setting", ["paper", "default", "image"])
 def test_stretch_gradient_comes_from_the_silhouette_and_matches_finite_differences(setting):
     # Stretching changes the BSV itself: without the silhouette term the BSV's derivative would be
     # zero (binary visibility). Finite differences use a finer direction grid. a0 = 0.2, not 0: at
@@ -99,8 +99,9 @@ def test_stretch_gradient_comes_from_the_silhouette_and_matches_finite_differenc
 
     if setting == "paper":
         method, fine = METHOD, Method.paper(bsv_grid=(8, 12), directions=(48, 48))
-    else:
-        method = Method(bsv_grid=(8, 12), directions=(48, 48))
+    else:  # "image": the same silhouette term with visibility from the edge-scan's images (convex mesh)
+        gradient = "image" if setting == "image" else "raycast"
+        method = Method(bsv_grid=(8, 12), directions=(48, 48), bsv_gradient=gradient)
         fine = Method(bsv_grid=(8, 12), directions=(128, 128))
     a0, h = jnp.float32(0.2), 0.05
     g = float(jax.jit(jax.grad(loss_with(method)))(a0))

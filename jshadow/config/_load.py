@@ -22,6 +22,7 @@ import numpy as np
 
 from ._errors import ConfigError, did_you_mean
 from ._schema import (
+    BSV_GRADIENTS,
     ENVIRONMENT_TYPES,
     LIGHT_TYPES,
     MESH_SHAPES,
@@ -185,6 +186,7 @@ _METHOD_KEYS = (
     "bsv_method",
     "bsv_bands",
     "shading",
+    "bsv_gradient",
 )
 
 
@@ -210,6 +212,7 @@ def _method(t: _Table) -> MethodConfig:
             t.integer("bsv_bands", 4, lo=1, hi=8) if t.has("bsv_bands") else (sh_bands if paper else None)
         ),
         shading=t.string("shading", "product" if paper else "ratio", choices=SHADINGS),
+        bsv_gradient=t.string("bsv_gradient", "raycast", choices=BSV_GRADIENTS),
     )
     try:
         return MethodConfig(**cfg)

@@ -19,6 +19,7 @@ import jax
 import numpy as np
 from jaxtyping import Array, Float
 
+from ..entities import BSV_GRADIENTS as BSV_GRADIENTS
 from ..entities import Method
 from ._errors import ConfigError
 
@@ -85,7 +86,8 @@ class MethodConfig(eqx.Module):
     "sphere" (extrapolation model), ``radial_samples`` tabulated distances, ``d_range`` their range in
     shell radii, ``bsv_method`` "auto" | "brute" | "edgescan", ``bsv_bands`` bands of the BSV and
     M_k (≥ ``sh_bands``; default ``sh_bands`` + 1, or ``sh_bands`` for the paper), ``shading``
-    "ratio" | "product" (see :func:`jshadow.scene.combine`).
+    "ratio" | "product" (see :func:`jshadow.scene.combine`), ``bsv_gradient`` "raycast" | "image"
+    (visibility in the BSV's vertex derivative, see :class:`jshadow.entities.Method`).
     """
 
     preset: str = eqx.field(static=True, default="default")
@@ -100,6 +102,7 @@ class MethodConfig(eqx.Module):
     bsv_method: str = eqx.field(static=True, default="auto")
     bsv_bands: int | None = eqx.field(static=True, default=None)
     shading: str = eqx.field(static=True, default="ratio")
+    bsv_gradient: str = eqx.field(static=True, default="raycast")
 
     def __check_init__(self):
         if self.model not in MODELS:
@@ -123,6 +126,7 @@ class MethodConfig(eqx.Module):
                 bsv_method=self.bsv_method,
                 bsv_bands=self.bsv_bands,
                 shading=self.shading,
+                bsv_gradient=self.bsv_gradient,
             )
         except (ValueError, TypeError) as err:
             raise ConfigError(None, None, str(err)) from None

@@ -7,6 +7,8 @@
 * :mod:`._bsv`: the BSV module, brute-force and analytic samplers, and reuse across frames.
 * :mod:`._edgescan`: the fast BSV for closed meshes on a shell R > r (silhouette-edge scanline).
 * :mod:`._silhouette`, :mod:`._bsv_grad`: silhouette edges and the BSV's vertex gradients.
+* :mod:`._edgescan_grad`: the edge-scan BSV's vertex gradient in the image plane, with visibility
+  read off the edge-scan's own images (fast, biased on self-occluding meshes).
 """
 
 from ._bsv import BSV as BSV
@@ -26,6 +28,9 @@ from ._directions import far_hemisphere_sh_projection as far_hemisphere_sh_proje
 from ._directions import hemisphere_directions as hemisphere_directions
 from ._edgescan import bsv_mesh_edgescan as bsv_mesh_edgescan
 from ._edgescan import edgescan_cone_directions as edgescan_cone_directions
+from ._edgescan import edgescan_slots as edgescan_slots
+from ._edgescan_grad import bsv_mesh_edgescan_diff as bsv_mesh_edgescan_diff
+from ._edgescan_grad import edgescan_grad_slots as edgescan_grad_slots
 from ._frames import bsv_frames as bsv_frames
 from ._frames import bsv_grid_angles as bsv_grid_angles
 from ._raycast import ray_fan_any_hit as ray_fan_any_hit

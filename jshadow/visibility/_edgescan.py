@@ -425,7 +425,8 @@ def _cached_edge_table(faces, num_vertices):
     if key not in _TABLES:
         if len(_TABLES) >= 64:
             _TABLES.clear()
-        _TABLES[key] = build_edge_table(faces, num_vertices)
+        with jax.ensure_compile_time_eval():  # concrete arrays even when first reached under jit
+            _TABLES[key] = build_edge_table(faces, num_vertices)
     return _TABLES[key]
 
 
