@@ -196,12 +196,13 @@ _SLOTS: dict = {}
 
 
 def _slots(occ: MeshOccluder, faces: np.ndarray, m) -> int | None:
-    """Silhouette slots per viewpoint: 1.5 × the largest count at the rest pose (cached per mesh);
-    None (every edge: never overflows, slower) when the rest pose is not concrete."""
+    """Silhouette slots per viewpoint: 1.5 × the largest count at the rest pose, cached per
+    topology and configuration (a later traced rest pose, e.g. fitted offsets, reuses them); None
+    (every edge: never overflows, slower) when no concrete pose of this topology has been seen."""
+    key = ("raycast", faces.shape, hash(faces.tobytes()), m.bsv_grid, m.shell)
     unit = _concrete(occ.unit_vertices)
     if unit is None:
-        return None
-    key = (hash(unit.tobytes()), hash(faces.tobytes()), m.bsv_grid, m.shell)
+        return _SLOTS.get(key)
     if key not in _SLOTS:
         with jax.ensure_compile_time_eval():
             counts = np.asarray(bsv_silhouette_counts(unit, faces, grid=m.bsv_grid, shell=m.shell))
@@ -211,19 +212,28 @@ def _slots(occ: MeshOccluder, faces: np.ndarray, m) -> int | None:
 
 
 def _image_slots(occ: MeshOccluder, faces: np.ndarray, m):
-    """Edge-scan slots and derivative slots for ``bsv_gradient = "image"``: measured on the rest pose
-    (the image is scale- and translation-invariant) with a 1.5 margin, cached; (None, None) when
-    the rest pose is not concrete (generous defaults, slower)."""
+    """Edge-scan slots and derivative slots for ``bsv_gradient = "image"``, with a 1.5 margin.
+
+    The largest over the rest pose and five poses of the animation (the images are scale- and
+    translation-invariant; under a trace an overflow could only raise), cached per topology and
+    configuration, so that a later call whose rest pose is traced (fitting
+    per-vertex offsets) reuses them; (None, None) — generous defaults, slower — when no concrete pose
+    of this topology has been seen.
+    """
+    key = ("image", faces.shape, hash(faces.tobytes()), m.bsv_grid, m.directions, m.shell)
     unit = _concrete(occ.unit_vertices)
     if unit is None:
-        return None, None
-    key = ("image", hash(unit.tobytes()), hash(faces.tobytes()), m.bsv_grid, m.directions, m.shell)
+        return _SLOTS.get(key, (None, None))
     if key not in _SLOTS:
+        poses = [unit]
         with jax.ensure_compile_time_eval():
-            _SLOTS[key] = (
-                edgescan_slots(unit, faces, m.bsv_grid, m.directions, m.shell),
-                edgescan_grad_slots(unit, faces, m.bsv_grid, m.shell),
-            )
+            if occ.deform is not None:  # the animation's poses too, where they are concrete
+                for t in np.linspace(0.0, 1.0, 5):
+                    v = _concrete(_vertices_at(occ, jnp.asarray(t, occ.unit_vertices.dtype)))
+                    poses += [] if v is None else [v]
+            es = [edgescan_slots(v, faces, m.bsv_grid, m.directions, m.shell) for v in poses]
+            gs = [edgescan_grad_slots(v, faces, m.bsv_grid, m.shell) for v in poses]
+        _SLOTS[key] = (tuple(max(x) for x in zip(*es, strict=True)), max(gs))
     return _SLOTS[key]
 
 
