@@ -8,7 +8,9 @@ Rows:
 * every shipped config (configs/*.toml, fit configs excluded): warm median per stage;
 * the animated bunny (deforming every frame, 160×160 plane + self-shadowing, studio map);
 * shading cost per receiver per occluder: field + combination time / (receivers × occluders);
-* many occluders: 1, 4 and 16 sphere occluders through the BSV path over a 160×160 plane.
+* many occluders: 1, 4 and 16 sphere occluders through the BSV path over a 160×160 plane;
+* throughput of the animated bunny with :func:`jshadow.render_frames` on one and two host threads
+  (whole frames, wall time per frame including the host copies of the results).
 
 Compile time is the first frame's time minus the warm median; warm figures are medians over the
 remaining frames (block_until_ready inside the renderer).
@@ -29,7 +31,7 @@ import numpy as np
 
 from jshadow.config import build_scene, config_from_dict
 from jshadow.entities import Environment, Method, Receivers, Scene, SphereOccluder
-from jshadow.runner import Renderer
+from jshadow.runner import Renderer, render_frames
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
@@ -39,6 +41,20 @@ METHODS = {
     "paper": {"preset": "paper"},  # the paper's method (shell r: brute-force BSV)
     "paper-shell1.5": {"preset": "paper", "shell": 1.5},  # the paper's model on the 1.5 r shell
 }
+
+
+def throughput(scene, frames):
+    """Wall ms per frame of ``render_frames`` over ``frames`` frames with 1 and 2 host threads
+    (compilation done beforehand; the runs alternate twice and the faster of each is kept)."""
+    render_frames(scene, frames=[0, 1], threads=2)  # compile
+    sel = [f % scene.n_frames for f in range(frames)]
+    best = {1: float("inf"), 2: float("inf")}
+    for _ in range(2):
+        for k in (1, 2):
+            t0 = time.perf_counter()
+            render_frames(scene, frames=sel, threads=k)
+            best[k] = min(best[k], 1e3 * (time.perf_counter() - t0) / frames)
+    return best
 
 
 def run_frames(scene, frames, sphere_path="analytic"):
@@ -119,6 +135,15 @@ def main():
                 + f"  fps {r['fps']:6.1f}  shade {r['shading_us_per_receiver_per_occluder']:.3f} µs/rec/occ",
                 flush=True,
             )
+    if not args.configs or any("bunny_animated" in c for c in args.configs):
+        c = ROOT / "configs" / "bunny_animated.toml"
+        scene = build_scene(config_from_dict(tomllib.loads(c.read_text()), source=str(c), root=c.parent))
+        out["throughput"] = throughput(scene, 2 * args.frames + 8)
+        print(
+            "bunny_animated throughput (render_frames): "
+            + "  ".join(f"{k} thread(s) {v:6.2f} ms/frame" for k, v in out["throughput"].items()),
+            flush=True,
+        )
     for k in (1, 4, 16):
         r = run_frames(many_spheres(k), args.frames, sphere_path="bsv")
         out["occluders"][k] = r

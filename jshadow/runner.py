@@ -198,14 +198,21 @@ def render_frames(
     devices: int | Sequence[jax.Device] | None = None,
     sphere_path: str = "analytic",
     chunk: int | None = None,
+    threads: int = 1,
 ) -> list[RenderResult]:
-    """Render several frames, spread round-robin over devices (one host thread per device).
+    """Render several frames, spread round-robin over devices and host threads.
 
-    Each device gets its own copy of the scene (:func:`jshadow._parallel.put_on`) and its own
-    :class:`Renderer`, so the frames assigned to it run there; devices work concurrently. ``frames``
-    defaults to every frame of the scene. Returns the results in the order of ``frames``, as host
-    (NumPy-backed) arrays on the default device.
+    Each device gets its own copy of the scene (:func:`jshadow._parallel.put_on`) and ``threads``
+    host threads, each with its own :class:`Renderer` (compiled stages are shared), so the frames
+    assigned to a thread run there while the others work. On a CPU, XLA:CPU leaves part of the cores
+    idle in the small stages of a frame: two threads on the 2-core benchmark machine raise the
+    animated bunny's throughput by about 15 % (16.0-18.2 -> 13.5-15.4 ms per frame,
+    ``benchmarks/bench_render.py``); per-frame latency does not improve. ``frames`` defaults to every
+    frame of the scene. Returns the results in the order of ``frames``, as host (NumPy-backed) arrays
+    on the default device.
     """
+    if isinstance(threads, bool) or not isinstance(threads, int | np.integer) or threads < 1:
+        raise ValueError(f"threads must be a positive integer (host threads per device), got {threads!r}")
     frames = list(range(scene.n_frames)) if frames is None else [int(f) for f in frames]
     for f in frames:
         frame_time(f, scene.n_frames)  # range check, before any thread starts
@@ -214,20 +221,22 @@ def render_frames(
     results: list = [None] * len(frames)
     errors: list = []
 
-    def work(dev):
+    def work(dev, k):
         try:
             rend = Renderer(_parallel.put_on(scene, dev), sphere_path=sphere_path, chunk=chunk)
-            for i, f in enumerate(frames):
-                if assigned[i] == dev:
-                    res, _ = rend.frame(f)
-                    results[i] = jax.tree_util.tree_map(np.asarray, res)
+            mine = [i for i in range(len(frames)) if assigned[i] == dev]
+            for i in mine[k::threads]:
+                res, _ = rend.frame(frames[i])
+                results[i] = jax.tree_util.tree_map(np.asarray, res)
         except BaseException as err:  # re-raised in the calling thread
             errors.append(err)
 
-    threads = [threading.Thread(target=work, args=(d,), daemon=True) for d in devs]
-    for th in threads:
+    workers = [
+        threading.Thread(target=work, args=(d, k), daemon=True) for d in devs for k in range(int(threads))
+    ]
+    for th in workers:
         th.start()
-    for th in threads:
+    for th in workers:
         th.join()
     if errors:
         raise errors[0]

@@ -97,6 +97,17 @@ def test_chunked_render_is_deterministic_and_agrees_with_one_piece(config_file):
         np.testing.assert_allclose(a[k], whole[k], rtol=0, atol=tol * np.abs(whole[k]).max())
 
 
+def test_render_frames_on_two_host_threads_equals_one_renderer(config_file):
+    scene = jshadow.build_scene(jshadow.load_config(config_file))
+    rend = Renderer(scene)
+    seq = [_arrays(rend.frame(f)[0], KEYS) for f in range(2)]
+    par = jshadow.render_frames(scene, threads=2)
+    for f in range(2):
+        _assert_identical(seq[f], _arrays(par[f], KEYS), KEYS)
+    with pytest.raises(ValueError, match="threads"):
+        jshadow.render_frames(scene, threads=0)
+
+
 def test_reference_same_seed_identical_other_seed_different(config_file):
     scene = jshadow.build_scene(jshadow.load_config(config_file))
     keys = (*KEYS, "irradiance_stderr")
