@@ -195,46 +195,57 @@ def _concrete(x):
 _SLOTS: dict = {}
 
 
-def _slots(occ: MeshOccluder, faces: np.ndarray, m) -> int | None:
-    """Silhouette slots per viewpoint: 1.5 × the largest count at the rest pose, cached per
-    topology and configuration (a later traced rest pose, e.g. fitted offsets, reuses them); None
-    (every edge: never overflows, slower) when no concrete pose of this topology has been seen."""
-    key = ("raycast", faces.shape, hash(faces.tobytes()), m.bsv_grid, m.shell)
+def _cached_slots(kind: str, occ: MeshOccluder, faces: np.ndarray, m, measure, merge, none):
+    """Slot sizes measured by ``measure(unit)`` on the occluder's concrete rest pose, cached per shape.
+
+    Each topology and configuration also keeps ``merge`` (the largest) of every shape measured with
+    it, which a call whose rest pose is traced (fitting per-vertex offsets) reuses; ``none`` when no
+    concrete pose of this topology has been seen.
+    """
+    topo = (kind, faces.shape, hash(faces.tobytes()), m.bsv_grid, m.directions, m.shell)
     unit = _concrete(occ.unit_vertices)
     if unit is None:
-        return _SLOTS.get(key)
+        return _SLOTS.get(topo, none)
+    key = (*topo, hash(unit.tobytes()))
     if key not in _SLOTS:
         with jax.ensure_compile_time_eval():
-            counts = np.asarray(bsv_silhouette_counts(unit, faces, grid=m.bsv_grid, shell=m.shell))
-        # (np.asarray first: np.max of a jax.Array calls its .max(), which a jit trace would stage)
-        _SLOTS[key] = int(min(int(1.5 * int(counts.max())) + 8, 3 * faces.shape[0] // 2))
+            _SLOTS[key] = measure(unit)
+        _SLOTS[topo] = _SLOTS[key] if topo not in _SLOTS else merge(_SLOTS[topo], _SLOTS[key])
     return _SLOTS[key]
+
+
+def _slots(occ: MeshOccluder, faces: np.ndarray, m) -> int | None:
+    """Silhouette slots per viewpoint for ``bsv_gradient = "raycast"``: 1.5 × the largest count at
+    the rest pose (:func:`_cached_slots`); None (every edge: never overflows, slower) if unknown."""
+
+    def measure(unit):
+        counts = np.asarray(bsv_silhouette_counts(unit, faces, grid=m.bsv_grid, shell=m.shell))
+        # (np.asarray first: np.max of a jax.Array calls its .max(), which a jit trace would stage)
+        return int(min(int(1.5 * int(counts.max())) + 8, 3 * faces.shape[0] // 2))
+
+    return _cached_slots("raycast", occ, faces, m, measure, max, None)
 
 
 def _image_slots(occ: MeshOccluder, faces: np.ndarray, m):
-    """Edge-scan slots and derivative slots for ``bsv_gradient = "image"``, with a 1.5 margin.
+    """Edge-scan slots and derivative slots for ``bsv_gradient = "image"``, with a 1.5 margin: the
+    largest over the rest pose and five poses of the animation where they are concrete (the images
+    are scale- and translation-invariant; under a trace an overflow could only raise), see
+    :func:`_cached_slots`; (None, None) — generous defaults, slower — if unknown."""
 
-    The largest over the rest pose and five poses of the animation (the images are scale- and
-    translation-invariant; under a trace an overflow could only raise), cached per topology and
-    configuration, so that a later call whose rest pose is traced (fitting
-    per-vertex offsets) reuses them; (None, None) — generous defaults, slower — when no concrete pose
-    of this topology has been seen.
-    """
-    key = ("image", faces.shape, hash(faces.tobytes()), m.bsv_grid, m.directions, m.shell)
-    unit = _concrete(occ.unit_vertices)
-    if unit is None:
-        return _SLOTS.get(key, (None, None))
-    if key not in _SLOTS:
+    def measure(unit):
         poses = [unit]
-        with jax.ensure_compile_time_eval():
-            if occ.deform is not None:  # the animation's poses too, where they are concrete
-                for t in np.linspace(0.0, 1.0, 5):
-                    v = _concrete(_vertices_at(occ, jnp.asarray(t, occ.unit_vertices.dtype)))
-                    poses += [] if v is None else [v]
-            es = [edgescan_slots(v, faces, m.bsv_grid, m.directions, m.shell) for v in poses]
-            gs = [edgescan_grad_slots(v, faces, m.bsv_grid, m.shell) for v in poses]
-        _SLOTS[key] = (tuple(max(x) for x in zip(*es, strict=True)), max(gs))
-    return _SLOTS[key]
+        if occ.deform is not None:
+            for t in np.linspace(0.0, 1.0, 5):
+                v = _concrete(_vertices_at(occ, jnp.asarray(t, occ.unit_vertices.dtype)))
+                poses += [] if v is None else [v]
+        es = [edgescan_slots(v, faces, m.bsv_grid, m.directions, m.shell) for v in poses]
+        gs = [edgescan_grad_slots(v, faces, m.bsv_grid, m.shell) for v in poses]
+        return tuple(max(x) for x in zip(*es, strict=True)), max(gs)
+
+    def merge(a, b):
+        return tuple(max(x, y) for x, y in zip(a[0], b[0], strict=True)), max(a[1], b[1])
+
+    return _cached_slots("image", occ, faces, m, measure, merge, (None, None))
 
 
 def occluder_visibilities(
