@@ -227,22 +227,27 @@ def _stage_views(vertices, faces, *, grid, shell):
     return center, radius, comps, offset
 
 
+def _local_coords(comps):
+    """Local coordinates ``frameᵀ(x − p)`` per (vertex, view) as three (V, G) arrays, and ``n·p``
+    per (face, view) (F, G) (compare with the face plane's offset for its facing)."""
+    vs, ps, fs, ns = comps
+    rel = [vs[m][:, None] - ps[m][None, :] for m in range(3)]  # x − p
+    qx, qy, qz = (rel[0] * fs[0][k] + rel[1] * fs[1][k] + rel[2] * fs[2][k] for k in range(3))
+    side = ns[0][:, None] * ps[0] + ns[1][:, None] * ps[1] + ns[2][:, None] * ps[2]
+    return qx, qy, qz, side
+
+
 @partial(jax.jit, static_argnames=("directions", "shell"))
 def _stage_project(comps, offset, *, directions, shell):
     """Image coordinates and start columns per (vertex, view) (V, G); facing per (face, view) (F, G)."""
     ny, nx = directions
     tan_a = 1.0 / math.sqrt(shell * shell - 1.0)
-    vs, ps, fs, ns = comps
-    rel = [vs[m][:, None] - ps[m][None, :] for m in range(3)]  # x − p
-    qx, qy, qz = (
-        rel[0] * fs[0][k] + rel[1] * fs[1][k] + rel[2] * fs[2][k] for k in range(3)
-    )  # frameᵀ(x − p)
+    qx, qy, qz, side = _local_coords(comps)
     inv = 1.0 / qz  # qz ≥ R − r > 0 for every vertex
     px, py = qx * inv, qy * inv  # gnomonic image coordinates
     dx = 2.0 * tan_a / nx
     col_dtype = jnp.uint8 if nx < 255 else jnp.int32  # less memory traffic in the (edge, view) pass
     col = jnp.clip(jnp.ceil((px + tan_a) / dx - 0.5), 0, nx).astype(col_dtype)  # first column x_j ≥ x
-    side = ns[0][:, None] * ps[0] + ns[1][:, None] * ps[1] + ns[2][:, None] * ps[2]  # n·p (F, G)
     front = side > offset[:, None]  # the face turns its front toward p
     return px, py, col, front
 
@@ -400,10 +405,14 @@ def _stage_occlusion(diff):
 
 @partial(jax.jit, static_argnames=("n", "grid"))
 def _stage_sh(diff, basis_w, *, n, grid):
-    g = diff.shape[0]
-    occ = _stage_occlusion(diff).reshape(g, -1).astype(basis_w.dtype)  # column-major pixel order
+    return _project_sh(_stage_occlusion(diff), basis_w, n).reshape(*grid, n * n)
+
+
+def _project_sh(occ, basis_w, n):
+    """``√(4π)·e0 − occ @ (w·Y)``: (G, n²) from the occlusion images (G, N_x, N_y) (column-major)."""
+    occ = occ.reshape(occ.shape[0], -1).astype(basis_w.dtype)
     full = jnp.zeros(n * n, basis_w.dtype).at[0].set(math.sqrt(4.0 * math.pi))
-    return (full - occ @ basis_w).reshape(*grid, n * n)
+    return full - occ @ basis_w
 
 
 # --------------------------------------------------------------------------------------------

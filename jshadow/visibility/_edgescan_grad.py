@@ -75,8 +75,10 @@ from ._edgescan import (
     _cached_edge_table,
     _compact,
     _compute,
+    _local_coords,
     _pack,
     _prepare,
+    _project_sh,
     _resolve,
     _round_up,
     _stage_occlusion,
@@ -160,10 +162,7 @@ def _np_nodes(nodes):
 def _local(vertices, faces, *, grid, shell):
     """Local coordinates per (vertex, view): image x, y and depth q_z (V, G); facing (F, G)."""
     _, _, comps, offset = _stage_views(vertices, faces, grid=grid, shell=shell)
-    vs, ps, fs, ns = comps
-    rel = [vs[m][:, None] - ps[m][None, :] for m in range(3)]
-    qx, qy, qz = (rel[0] * fs[0][k] + rel[1] * fs[1][k] + rel[2] * fs[2][k] for k in range(3))
-    side = ns[0][:, None] * ps[0] + ns[1][:, None] * ps[1] + ns[2][:, None] * ps[2]
+    qx, qy, qz, side = _local_coords(comps)
     return qx / qz, qy / qz, qz, side > offset[:, None]
 
 
@@ -184,7 +183,8 @@ def edgescan_grad_slots(
     """Static slot count for :func:`bsv_mesh_edgescan_diff`: (silhouette edge, view) pairs × margin.
 
     Counted on the given (concrete) pose over all T·P views, times ``margin``, rounded up to a
-    multiple of 32. Silhouettes of closed meshes hold about 15 % of the edges per view.
+    multiple of 32. Silhouettes of closed meshes hold a small share of the edges per view (the
+    bunny at shell 1.5: 12 % on average).
     """
     if not (isinstance(margin, int | float) and margin >= 1.0):
         raise ValueError(f"margin must be a number >= 1, got {margin!r}")
@@ -358,15 +358,13 @@ def bsv_mesh_edgescan_diff(
     n, nodes = int(n), int(nodes)
     views = grid[0] * grid[1]
     basis_w = _basis_weights(directions, shell, n, vertices.dtype)
-    full = np.zeros(n * n)
-    full[0] = math.sqrt(4.0 * math.pi)
     rings = _ring_faces(faces_np, table)
 
     def forward(x):
         """Coefficients (G, n²) and occlusion images (G, N_x, N_y) of one edge-scan pass."""
         diff, _, _, _ = _compute(x, faces_np, table, grid, directions, shell, slots)
         occ = _stage_occlusion(diff)
-        return jnp.asarray(full, basis_w.dtype) - occ.reshape(views, -1).astype(basis_w.dtype) @ basis_w, occ
+        return _project_sh(occ, basis_w, n), occ
 
     @jax.custom_jvp
     def bsv(x):
