@@ -138,11 +138,15 @@ def mesh_bsv(occ: MeshOccluder, t, scene: Scene, differentiable: bool = True) ->
     faces = _concrete(occ.faces)
     if not differentiable:
         return bsv_mesh(v, occ.faces, method=m.bsv_method, **kw)
-    if faces is None:  # the forward pass works; a derivative would silently miss the silhouette term
-        coeffs = _traced_faces_guard(lambda x: bsv_mesh(x, occ.faces, method=m.bsv_method, **kw).coeffs, v)
-        center, radius = bounding_sphere(v)
-        return BSV(coeffs=coeffs, center=center, radius=radius, shell_radius=m.shell * radius)
+    center, radius = bounding_sphere(v)
+    coeffs = _differentiable_coeffs(occ, v, faces, m, kw)
+    return BSV(coeffs=coeffs, center=center, radius=radius, shell_radius=m.shell * radius)
 
+
+def _differentiable_coeffs(occ: MeshOccluder, v, faces: np.ndarray | None, m, kw):
+    """BSV coefficients of ``v`` carrying the silhouette derivative that ``m.bsv_gradient`` selects."""
+    if faces is None:  # the forward pass works; a derivative would silently miss the silhouette term
+        return _traced_faces_guard(lambda x: bsv_mesh(x, occ.faces, method=m.bsv_method, **kw).coeffs, v)
     if m.bsv_gradient == "image":
         if not is_closed_manifold(faces):
             raise ValueError(
@@ -150,16 +154,12 @@ def mesh_bsv(occ: MeshOccluder, t, scene: Scene, differentiable: bool = True) ->
                 "wound manifold mesh; this occluder's mesh is not (use bsv_gradient = 'raycast')"
             )
         slots, grad_slots = _image_slots(occ, faces, m)
-        coeffs = bsv_mesh_edgescan_diff(v, faces, slots=slots, grad_slots=grad_slots, **kw)
-        center, radius = bounding_sphere(v)
-        return BSV(coeffs=coeffs, center=center, radius=radius, shell_radius=m.shell * radius)
+        return bsv_mesh_edgescan_diff(v, faces, slots=slots, grad_slots=grad_slots, **kw)
 
     def forward(x):
         return bsv_mesh(x, faces, method=m.bsv_method, **kw).coeffs
 
-    coeffs = bsv_mesh_diff(v, faces, forward=forward, slots=_slots(occ, faces, m), nodes=8, **kw)
-    center, radius = bounding_sphere(v)
-    return BSV(coeffs=coeffs, center=center, radius=radius, shell_radius=m.shell * radius)
+    return bsv_mesh_diff(v, faces, forward=forward, slots=_slots(occ, faces, m), nodes=8, **kw)
 
 
 TRACED_FACES = (
