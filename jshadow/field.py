@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import math
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
@@ -109,8 +110,10 @@ def bsv_visibility_sh(
     cos_theta, sin_theta = jnp.where(off_centre, z * inv_d, 1.0), rho * inv_d
     k = jnp.where(off_centre, bsv.shell_radius * inv_d, jnp.asarray(1e6, d.dtype))
 
-    ext = mk_apply_table(table, bsv.coeffs, n)  # (K, T, P, n²)
-    flat = ext.reshape(-1, n * n)
+    mats = _node_matrices(table, bsv.coeffs.shape[-1], n, bsv.coeffs.dtype)  # (K, nb², n²)
+    # (K·T·P, n²): M_k, the frame's signs and D(Q)ᵀ at every sample and k_t
+    flat = jnp.matmul(bsv.coeffs.reshape(1, t_n * p_n, -1), mats, precision=jax.lax.Precision.HIGHEST)
+    flat = flat.reshape(-1, n * n)
     i0, j0, j1, wa, wb = _grid_coords(theta, phi, t_n, p_n)
     t0, wk = mk_bracket(table, k)
     s_d = 0.0
@@ -119,8 +122,39 @@ def bsv_visibility_sh(
             for j, w_j in ((j0, 1.0 - wb), (j1, wb)):
                 w = (w_t * w_i * w_j).astype(flat.dtype)
                 s_d = s_d + w[..., None] * flat[((t0 + dt) * t_n + i) * p_n + j]
-    s_w = frame_to_world_cs(s_d, cos_theta, sin_theta, cos_phi, sin_phi)
+    s_w = sh.rotate_zyz_cs(s_d, (cos_phi, sin_phi), (cos_theta, sin_theta), prepared=True)
     return jnp.where(mk_in_range(table, k)[..., None], s_w, unit_visibility(d.shape, n, s_w.dtype))
+
+
+_NODE_MATRICES: dict = {}
+
+
+def _node_matrices(table: MkTable, in_n2: int, n: int, dtype) -> Float[Array, "K i n2"]:
+    """(K, in_n2, n²) row-vector matrices taking BSV coefficients at every tabulated k_t to the
+    field's interpolation table: ``M_{k_t}`` (truncated to n bands), then the frame's signs
+    (:func:`_frame_signs`) and the constant first step of the Euler rotation
+    (:func:`jshadow.sh.zyz_prepare_matrix`). All linear, so applying them at the grid nodes
+    before the per-receiver interpolation gives the same numbers as after it, once per node
+    instead of once per receiver. Built once per concrete table (cached), traced otherwise."""
+
+    def build():
+        eye = jnp.eye(in_n2, dtype=jnp.float64 if jax.config.jax_enable_x64 else jnp.float32)
+        rows = mk_apply_table(table, eye, n)  # (K, in_n2, n²): row j = M_k e_j
+        post = _frame_signs(n)[:, None] * sh.zyz_prepare_matrix(n)
+        return jnp.matmul(rows, jnp.asarray(post, rows.dtype), precision=jax.lax.Precision.HIGHEST)
+
+    try:
+        np.asarray(table.values)
+    except jax.errors.TracerArrayConversionError:
+        return build().astype(dtype)
+    key = (id(table), in_n2, n, jnp.dtype(dtype).name)
+    hit = _NODE_MATRICES.get(key)
+    if hit is None or hit[0] is not table:
+        if len(_NODE_MATRICES) >= 64:  # tables are few and long-lived; bound the cache anyway
+            _NODE_MATRICES.clear()
+        with jax.ensure_compile_time_eval():
+            hit = _NODE_MATRICES[key] = (table, np.asarray(build(), dtype))
+    return jnp.asarray(hit[1])
 
 
 def _frame_signs(n: int) -> np.ndarray:

@@ -266,3 +266,20 @@ def test_rotate_zyz_cs_equals_rotate_zyz(shape):
     want = rotate_zyz(c, a, b, g)
     np.testing.assert_allclose(rotate_zyz_cs(c, pair(a), pair(b), pair(g)), want, atol=1e-13)
     np.testing.assert_allclose(rotate_zyz_cs(c, pair(a), pair(b)), rotate_zyz(c, a, b), atol=1e-13)
+
+
+@pytest.mark.usefixtures("x64")
+def test_rotate_zyz_cs_prepared_equals_unprepared():
+    # coefficients multiplied by zyz_prepare_matrix once (the field folds it into its table) rotate
+    # to the same result without that first product
+    from jshadow.sh import zyz_prepare_matrix
+
+    rng = np.random.default_rng(12)
+    c = jnp.asarray(rng.normal(size=(5, 16)))
+    a, b = (jnp.asarray(rng.uniform(-4, 4, 5)) for _ in range(2))
+    pair = lambda x: (jnp.cos(x), jnp.sin(x))  # noqa: E731
+    pre = c @ jnp.asarray(zyz_prepare_matrix(4))
+    got = rotate_zyz_cs(pre, pair(a), pair(b), prepared=True)
+    np.testing.assert_allclose(got, rotate_zyz(c, a, b), atol=1e-13)
+    with pytest.raises(ValueError, match="without γ"):
+        rotate_zyz_cs(pre, pair(a), pair(b), pair(a), prepared=True)

@@ -18,6 +18,7 @@ from ._rotation import rotate as rotate
 from ._rotation import rotate_zyz as rotate_zyz
 from ._rotation import rotate_zyz_cs as rotate_zyz_cs
 from ._rotation import rotation_matrix as rotation_matrix
+from ._rotation import zyz_prepare_matrix as zyz_prepare_matrix
 from ._triple import gaunt_tensor as gaunt_tensor
 from ._triple import product_matrix as product_matrix
 from ._triple import sh_product as sh_product

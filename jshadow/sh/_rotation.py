@@ -32,7 +32,7 @@ from jaxtyping import Array, ArrayLike, Float
 from ._basis import _basis_list, sh_bands_of
 from ._grids import _np_sh_basis
 
-__all__ = ["rotation_matrix", "rotate", "rotate_zyz", "rotate_zyz_cs"]
+__all__ = ["rotation_matrix", "rotate", "rotate_zyz", "rotate_zyz_cs", "zyz_prepare_matrix"]
 
 # full float32 accuracy on accelerators too (no TF32/bf16 passes in these small products)
 _HIGHEST = jax.lax.Precision.HIGHEST
@@ -227,12 +227,17 @@ def rotate_zyz_cs(
     cos_sin_alpha: tuple[Float[ArrayLike, "..."], Float[ArrayLike, "..."]],
     cos_sin_beta: tuple[Float[ArrayLike, "..."], Float[ArrayLike, "..."]],
     cos_sin_gamma: tuple[Float[ArrayLike, "..."], Float[ArrayLike, "..."]] | None = None,
+    prepared: bool = False,
 ) -> Float[Array, "... n2"]:
     """:func:`rotate_zyz` with each Euler angle given by its (cosine, sine) pair.
 
     For callers that already hold them (a direction's components give cos θ, sin θ, cos φ, sin φ
     with a division each), this skips every trigonometric function. The pairs are not
     renormalised: pass (cos, sin) of a real angle.
+
+    ``prepared=True`` (only without γ): ``coeffs`` are already ``coeffs @ zyz_prepare_matrix(n)``
+    (the constant first step of the y rotation, e.g. folded into a table of coefficients that
+    many rotations read), which saves one n²×n² product per rotation.
     """
     coeffs = jnp.asarray(coeffs)
     n = sh_bands_of(coeffs.shape[-1])
@@ -242,13 +247,22 @@ def rotate_zyz_cs(
     cb, sb = (jnp.asarray(v, dtype) for v in cos_sin_beta)
     c = coeffs.astype(dtype)
     dq = jnp.asarray(_zyz_tables(n)[3], dtype)
+    if prepared and cos_sin_gamma is not None:
+        raise ValueError("prepared=True applies to rotations without γ only")
     if cos_sin_gamma is not None:
         cg, sg = (jnp.asarray(v, dtype) for v in cos_sin_gamma)
         c = _apply_rz(c, cg, sg, n)
-    c = jnp.matmul(c, dq, precision=_HIGHEST)  # D(Q)ᵀ c (row-vector form)
+    if not prepared:
+        c = jnp.matmul(c, dq, precision=_HIGHEST)  # D(Q)ᵀ c (row-vector form)
     c = _apply_rz(c, cb, sb, n)
     c = jnp.matmul(c, dq.T, precision=_HIGHEST)  # D(Q) c
     return _apply_rz(c, ca, sa, n)
+
+
+def zyz_prepare_matrix(n: int) -> np.ndarray:
+    """The constant (n², n²) float64 matrix that :func:`rotate_zyz_cs` (``prepared=False``) first
+    multiplies row-vector coefficients by: ``D(Q)ᵀ`` with ``Q = R_x(−90°)``, read-only."""
+    return _zyz_tables(int(n))[3]
 
 
 def rotate_zyz(
