@@ -33,7 +33,14 @@ import numpy as np
 
 from . import _parallel
 from .entities import MeshOccluder, Receivers, Scene, frame_time, receivers_at_time
-from .scene import RenderResult, combine, occluder_bsv, occluder_visibilities, scene_lighting
+from .scene import (
+    RenderResult,
+    combine,
+    occluder_bsv,
+    occluder_visibilities,
+    scene_lighting,
+    shared_normal_count,
+)
 
 __all__ = ["Renderer", "shape_is_static", "render_frames", "DEFAULT_CHUNK"]
 
@@ -68,9 +75,9 @@ def _fields(scene, bsvs, points):
 
 
 @eqx.filter_jit
-def _combine(scene, points, normals, vis, dist, lighting, analytic_spheres):
+def _combine(scene, points, normals, vis, dist, lighting, analytic_spheres, shared_normal):
     vis, dist = list(vis), list(dist)  # (m, ...) arrays or empty lists -> lists of m arrays
-    e = combine(scene, points, normals, vis, dist, lighting, analytic_spheres)
+    e = combine(scene, points, normals, vis, dist, lighting, analytic_spheres, shared_normal)
     return e, e * (scene.receivers.albedo / math.pi)
 
 
@@ -116,6 +123,7 @@ class Renderer:
         # environment SH / irradiance map: once per renderer, not per frame (and finished here, so
         # that the asynchronous dispatch does not leak into the first frame's BSV timing)
         self._lighting = jax.block_until_ready(scene_lighting(scene))
+        self._shared_normal = shared_normal_count(scene.receivers.normals)  # the plane's rows lead
         self._static_bsvs: dict[int, object] = {}
         self.bsv_computations = 0  # how many BSVs were actually sampled (tests check the reuse)
 
@@ -172,7 +180,16 @@ class Renderer:
             vis, dist = jax.block_until_ready(_fields(self._light, bsvs, p))
             tb = time.perf_counter()
             e, rad = jax.block_until_ready(
-                _combine(self._light, p, q, vis, dist, self._lighting, self.sphere_path == "analytic")
+                _combine(
+                    self._light,
+                    p,
+                    q,
+                    vis,
+                    dist,
+                    self._lighting,
+                    self.sphere_path == "analytic",
+                    min(max(self._shared_normal - s, 0), size),
+                )
             )
             tc = time.perf_counter()
             field_s += tb - ta

@@ -232,3 +232,60 @@ def test_field_equals_interpolate_then_extrapolate_then_rotate(shape):
         out = bsv_visibility_sh(bsv, table, one, bands=4)
         assert out.shape == (*shape, 16)
         np.testing.assert_allclose(out.reshape(-1, 16), got[7 : 7 + max(1, math.prod(shape))], atol=1e-12)
+
+
+def _shared_normal_scene(shading):
+    # a plane (one shared normal) then points with their own normals, an HDR-like environment, a
+    # sphere light and two occluders: every term of combine that depends on the normal
+    rng = np.random.default_rng(7)
+    rec = plane(n=7)
+    extra = rng.normal(size=(9, 3)).astype(np.float32) * 0.4 + np.float32([0.3, 0.6, 0.1])
+    nrm = rng.normal(size=(9, 3)).astype(np.float32)
+    nrm /= np.linalg.norm(nrm, axis=-1, keepdims=True)
+    pts = jnp.concatenate([rec.points, jnp.asarray(extra)])
+    rec = Receivers(pts, jnp.concatenate([rec.normals, jnp.asarray(nrm)]), rec.albedo)
+    img = jnp.asarray(rng.uniform(0.2, 3.0, size=(16, 32, 3)).astype(np.float32))
+    env = Environment(f32(1.0, 0.8, 0.6), img, kind="hdr")
+    occ = (
+        SphereOccluder(f32(0.2, 1.0, 0.0), jnp.float32(0.4)),
+        SphereOccluder(f32(-0.6, 1.4, 0.3), jnp.float32(0.3)),
+    )
+    light = SphereLight(f32(1.0, 3.0, 0.5), jnp.float32(0.5), f32(2.0, 2.0, 2.0))
+    return Scene(Method(bsv_grid=(12, 20), directions=(16, 16), shading=shading), rec, occ, (light,), env)
+
+
+@pytest.mark.parametrize("shading", ["ratio", "product"])
+def test_combine_shared_normal_equals_per_receiver(shading):
+    # the plane's receivers share one normal: computing their transfer, unoccluded irradiance and
+    # environment shading vector once must give what the per-receiver path gives
+    from jshadow.scene import combine, occluder_visibilities, scene_bsvs, shared_normal_count
+
+    scene = _shared_normal_scene(shading)
+    pts, nrm = scene.receivers.points, scene.receivers.normals
+    assert shared_normal_count(nrm) == 49
+    for sphere_path in ("analytic", "bsv"):
+        vis, dist = occluder_visibilities(scene, scene_bsvs(scene, 0.0, sphere_path), pts)
+        analytic = sphere_path == "analytic"
+        general = combine(scene, pts, nrm, vis, dist, analytic_spheres=analytic)
+        for shared in (1, 20, 49):
+            got = combine(scene, pts, nrm, vis, dist, analytic_spheres=analytic, shared_normal=shared)
+            np.testing.assert_allclose(got, general, rtol=2e-5, atol=2e-5)
+        shadowed = np.asarray(general).sum(-1) < 0.95 * np.asarray(combine(scene, pts, nrm, [], [])).sum(-1)
+        assert shadowed[:49].any()  # the comparison covers shadowed plane receivers
+    # render() passes the plane's count; its gradient w.r.t. the light equals the per-receiver one
+    loss = lambda c, shared: combine(  # noqa: E731
+        eqx_replace(scene, lights=(SphereLight(c, jnp.float32(0.5), f32(2.0, 2.0, 2.0)),)),
+        pts, nrm, *occluder_visibilities(scene, scene_bsvs(scene, 0.0), pts), shared_normal=shared,
+    ).sum()
+    c0 = f32(1.0, 3.0, 0.5)
+    np.testing.assert_allclose(jax.grad(loss)(c0, 49), jax.grad(loss)(c0, 0), rtol=1e-4, atol=1e-4)
+
+
+def test_shared_normal_count():
+    from jshadow.scene import shared_normal_count
+
+    up, side = [0.0, 1.0, 0.0], [1.0, 0.0, 0.0]
+    assert shared_normal_count(np.asarray([up, up, side, up], np.float32)) == 2
+    assert shared_normal_count(np.asarray([up] * 5, np.float32)) == 5
+    assert shared_normal_count(np.zeros((0, 3), np.float32)) == 0
+    assert jax.jit(lambda x: jnp.float32(shared_normal_count(x)))(jnp.ones((4, 3))) == 0  # traced: none
