@@ -217,10 +217,50 @@ def test_sphere_light_blocked_matches_monte_carlo(x64, a, b, g):
     assert f == pytest.approx(p, abs=4 * math.sqrt(p * (1 - p) / in_light.sum()) + 1e-3)
 
 
-@pytest.mark.parametrize("where", ["g=a+b", "g=a-b", "g=b-a", "g=0", "inside"])
+def _np_cap_overlap(a, b, g):
+    """Exact solid angle of the intersection of caps a, b (radians) with axes g apart (float64 numpy)."""
+    ca, cb, cg, sa, sb, sg = np.cos(a), np.cos(b), np.cos(g), np.sin(a), np.sin(b), np.sin(g)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lens = 2 * (
+            np.pi
+            - ca * np.arccos(np.clip((cb - ca * cg) / (sa * sg), -1, 1))
+            - cb * np.arccos(np.clip((ca - cb * cg) / (sb * sg), -1, 1))
+            - np.arccos(np.clip((cg - ca * cb) / (sa * sb), -1, 1))
+        )
+    small = 2 * np.pi * (1 - np.cos(np.minimum(a, b)))
+    return np.where(g >= a + b, 0.0, np.where(g <= np.abs(a - b), small, lens))
+
+
+def test_sphere_light_blocked_float32_against_exact():
+    # float32 (what renders use) against the exact float64 lens, caps from 0.3° to 72° and many
+    # near-coaxial, grazing pairs: 2000 random occluder/light pairs seen from the origin
+    rng = np.random.default_rng(5)
+    m = 2000
+    dirs = rng.normal(size=(2, m, 3))
+    dirs /= np.linalg.norm(dirs, axis=-1, keepdims=True)
+    dirs[1, : m // 2] = dirs[0, : m // 2] + 0.05 * rng.normal(size=(m // 2, 3))  # near-coaxial half
+    dirs[1] /= np.linalg.norm(dirs[1], axis=-1, keepdims=True)
+    d = rng.uniform(1.5, 20.0, size=(2, m))
+    s = np.exp(rng.uniform(np.log(0.005), np.log(0.95), size=(2, m)))  # sin of the cap angles
+    args = (dirs[0] * d[0, :, None], s[0] * d[0], dirs[1] * d[1, :, None], s[1] * d[1], np.zeros((m, 3)))
+    got = sphere_light_blocked(*(jnp.asarray(x, jnp.float32) for x in args))
+    assert got.dtype == jnp.float32
+    a, b = np.arcsin(s[0]), np.arcsin(s[1])
+    g = np.arctan2(np.linalg.norm(np.cross(dirs[0], dirs[1]), axis=-1), np.sum(dirs[0] * dirs[1], -1))
+    want = _np_cap_overlap(a, b, g) / (2 * np.pi * (1 - np.cos(b)))
+    assert 0.2 < np.mean((want > 1e-3) & (want < 0.999)) < 0.9  # partial overlaps are well represented
+    np.testing.assert_allclose(np.asarray(got), want, atol=1e-3)
+
+
+@pytest.mark.parametrize(
+    "where", ["g=a+b", "g=a-b", "g=b-a", "g=0", "inside", "small caps", "small light", "small light, g=a+b"]
+)
 def test_sphere_light_blocked_gradients_finite(x64, where):
-    a, b = (0.4, 0.2) if where != "g=b-a" else (0.2, 0.4)
-    g = {"g=a+b": a + b, "g=a-b": a - b, "g=b-a": b - a, "g=0": 0.0, "inside": 0.3}[where]
+    a, b = {"g=b-a": (0.2, 0.4), "small caps": (0.01, 0.005)}.get(where, (0.4, 0.2))
+    b = 0.008 if where.startswith("small light") else b
+    g = {"g=a+b": a + b, "g=a-b": a - b, "g=b-a": b - a, "g=0": 0.0, "inside": 0.3, "small caps": 0.008}.get(
+        where, a + 0.004 if where == "small light" else a + b
+    )
     d_o = 0.5 if where == "inside" else 2.0
 
     def f(pt):
@@ -233,6 +273,12 @@ def test_sphere_light_blocked_gradients_finite(x64, where):
     grad = jax.grad(f)(jnp.zeros(3))
     assert bool(jnp.all(jnp.isfinite(grad)))
     assert 0.0 <= float(f(jnp.zeros(3))) <= 1.0
+    if where in ("small caps", "small light", "inside"):  # inside a branch: the gradient is the slope
+        h = 1e-7
+        fd = [(f(h * e) - f(-h * e)) / (2 * h) for e in jnp.eye(3)]
+        np.testing.assert_allclose(grad, fd, rtol=1e-5, atol=1e-6 * float(jnp.abs(grad).max()) + 1e-9)
+        if where != "inside":
+            assert float(jnp.abs(grad).max()) > 0  # the small caps' overlap does move with the point
 
 
 def _cone_samples(axis, cos_max, m, rng):
