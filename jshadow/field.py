@@ -89,12 +89,14 @@ def bsv_visibility_sh(
     end): a BSV sampled with more bands than the lighting is extrapolated at full resolution.
 
     Steps 2 and 3 of the module docstring are both linear, so they are done in the other order:
-    every tabulated ``M_{k_t}`` is applied once to every BSV sample (:func:`mk_apply_table`, a
-    (K, T, P, n²) array; 0.2 M multiply-adds for the default 16 × 12 × 20 × 57 entries) and each
+    every tabulated ``M_{k_t}`` — with the frame's sign flips and the rotation's constant first
+    product folded in (:func:`_node_matrices`) — is applied once to every BSV sample (a
+    (K, T, P, n²) array; 1.5 M multiply-adds for 16 × 240 samples, 25 → 16 coefficients) and each
     receiver interpolates that array trilinearly in (k, θ, φ) — the same numbers as interpolating
     the BSV and M_k separately, without a matrix per receiver. The angles come from
     :func:`jshadow._numerics.fast_atan2` and the frame rotation from the direction's components
-    (:func:`jshadow.sh.rotate_zyz_cs`), so no other transcendental function is evaluated.
+    (:func:`jshadow.sh.rotate_zyz_cs`, ``prepared=True``), so no other transcendental function is
+    evaluated.
     """
     t_n, p_n, _ = bsv.coeffs.shape
     n = sh.sh_bands_of(bsv.coeffs.shape[-1]) if bands is None else int(bands)

@@ -392,8 +392,8 @@ def combine(
     environment's shading vectors ``w_c = M_env[c] T₀`` (each receiver's environment term becomes
     one n²×3 product ``V · w``) and the matrix of "multiply by T₀" (a sphere light's ``T ⊛ cap``
     becomes one n²×n² product instead of a triple product): the same numbers up to rounding,
-    2.5–3.5× less combination time on the shipped planes (BENCHMARKS.md). Their normals'
-    cotangents all flow to receiver 0.
+    1.8–3.5× less combination time per frame of the shipped configs (BENCHMARKS.md, "Rendering").
+    Their normals' cotangents all flow to receiver 0.
     """
     n = scene.method.sh_bands
     ratio = scene.method.shading == "ratio"
