@@ -280,6 +280,30 @@ def test_combine_shared_normal_equals_per_receiver(shading, sphere_path):
     assert plane.min() < 0.9 * plane.max()  # the plane holds shadowed and lit receivers
 
 
+def test_combine_shared_normal_gradient_equals_per_receiver():
+    # the light-position gradient through the shared-normal terms (cap, "multiply by T₀", ratio) is
+    # the per-receiver one (constant environment: cheap to compile)
+    from jshadow.scene import combine, occluder_visibilities, scene_bsvs, scene_lighting
+
+    base = _shared_normal_scene("ratio")  # 2 bands: the products compile quickly
+    env = Environment(f32(0.5, 0.5, 0.5))
+    scene = eqx_replace(base, method=Method(sh_bands=2, shading="ratio"), environment=env)
+    pts, nrm = scene.receivers.points, scene.receivers.normals
+    vis, dist = occluder_visibilities(scene, scene_bsvs(scene, 0.0), pts)  # analytic spheres, whose
+    # light shadow goes through the SH products below (analytic_spheres=False)
+    lighting = scene_lighting(scene)
+
+    def loss(c, shared):
+        lit = eqx_replace(scene, lights=(SphereLight(c, jnp.float32(0.5), f32(2.0, 2.0, 2.0)),))
+        return combine(lit, pts, nrm, vis, dist, lighting, False, shared_normal=shared).sum()
+
+    grad = jax.jit(jax.grad(loss), static_argnums=1)
+    c0 = f32(1.0, 3.0, 0.5)
+    g49 = grad(c0, 49)
+    assert float(jnp.abs(g49).max()) > 0
+    np.testing.assert_allclose(g49, grad(c0, 0), rtol=1e-4, atol=1e-4 * float(jnp.abs(g49).max()))
+
+
 def test_shared_normal_count():
     from jshadow.scene import shared_normal_count
 
