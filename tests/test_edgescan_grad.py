@@ -170,3 +170,69 @@ def test_traced_overflow_of_gradient_slots_raises():
     with pytest.raises(Exception, match="gradient slots overflowed"):
         jax.block_until_ready(jax.grad(loss)(x))
     assert math.isfinite(float(loss(x)))  # the primal alone does not need the slots
+
+
+def _fan_faces(f):
+    """Per edge of ``f``: the faces _ring_fans encodes, and every face touching an end point except
+    the edge's own two, both as sets of sorted vertex triples."""
+    from jshadow.visibility._edgescan import build_edge_table
+    from jshadow.visibility._edgescan_grad import _ring_fans
+
+    table = build_edge_table(f)
+    rim, at_b, face = _ring_fans(np.asarray(f, np.int32), table)
+    a, b, t1, t2 = (np.asarray(x) for x in (table.a, table.b, table.t1, table.t2))
+    for e in range(table.num_edges):
+        centre = np.where(at_b[e], b[e], a[e])
+        fans = {
+            tuple(sorted((centre[i], rim[e, i], rim[e, i + 1])))
+            for i in range(rim.shape[1] - 1)
+            if face[e, i]
+        }
+        assert all(centre[i] == centre[i + 1] for i in range(rim.shape[1] - 1) if face[e, i])
+        ring = {
+            tuple(sorted(t))
+            for k, t in enumerate(f.tolist())
+            if (a[e] in t or b[e] in t) and k not in (t1[e], t2[e])
+        }
+        yield fans, ring
+
+
+def test_fans_hold_the_faces_around_an_edge():
+    # the node visibility test walks the faces around each end point as fans; they must be exactly
+    # the faces touching a or b other than the edge's own two (bunny_small; and a vertex whose faces
+    # form two separate fans: two tetrahedra sharing one vertex)
+    m = load_mesh(ASSETS / "bunny_small.obj")
+    pairs = list(_fan_faces(np.asarray(m.faces)))
+    assert len(pairs) == 1500 and all(fans == ring for fans, ring in pairs)
+    tet = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+    bowtie = np.concatenate([tet, np.where(tet == 0, 0, tet + 3)])  # vertex 0 in both
+    pairs = list(_fan_faces(bowtie))
+    assert len(pairs) == 12 and all(fans == ring for fans, ring in pairs)
+    # edge (0, 1): tetrahedron 1's other two faces and all three of tetrahedron 2 at vertex 0
+    assert max(len(ring) for _, ring in pairs) == 5
+
+
+def test_node_compaction_keeps_the_gradient_and_overflow_raises():
+    # grad_slots = (pairs, nodes): only the nodes that pass the image test get a slot for the
+    # face test; an int gives every node one. Same derivative; too few node slots raise, also
+    # under jax.jit(jax.grad(...)), where the primal (and a check on it alone) is dead code.
+    from jshadow.visibility import edgescan_grad_slots
+
+    m = load_mesh(ASSETS / "bunny_small.obj")
+    x, f = jnp.asarray(m.vertices, jnp.float32), np.asarray(m.faces)
+    grid, res = (3, 4), (32, 32)
+    pairs, nodes = edgescan_grad_slots(x, f, grid, SHELL, directions=res)
+    assert nodes < 2 * pairs
+    w = jnp.asarray(np.random.default_rng(1).normal(size=(*grid, N_BANDS**2)), jnp.float32)
+
+    def grad(slots):
+        def loss(v):
+            return jnp.sum(w * bsv_mesh_edgescan_diff(v, f, N_BANDS, grid, res, SHELL, grad_slots=slots))
+
+        return np.asarray(jax.jit(jax.grad(loss))(x))
+
+    compact, every = grad((pairs, nodes)), grad(pairs)
+    assert np.abs(every).max() > 0
+    np.testing.assert_allclose(compact, every, rtol=1e-5, atol=1e-5 * np.abs(every).max())
+    with pytest.raises(Exception, match="gradient slots overflowed"):
+        grad((pairs, 32))

@@ -23,8 +23,9 @@ a per-vertex integer ``⌈(x − x₀)/Δx⌉``, computed once per (vertex, view
 vertex agree on it and the count is exact at pixel centres (up to rounding when a centre lies
 on a projected edge). Facing is one sign per (face, view), so every face is counted consistently.
 
-Stages (each a separate ``jax.jit``: XLA:CPU fuses gathers into their consumers and recomputes
-them, so one fused jit is slower; notes/bsv-speed.md):
+Stages (each a separate ``jax.jit``, and each a :func:`staged` conditional when traced: XLA:CPU
+fuses gathers into their consumers and recomputes them, so one plainly fused jit is slower;
+notes/bsv-speed.md. Concrete input runs all stages as one compiled call of such conditionals):
 
 1. views: bounding sphere, shell points and frames, face planes (small);
 2. project: the (vertex, view) image coordinates and start columns, the (face, view) facing bits;
@@ -462,17 +463,51 @@ def _round_up(x, m):
     return int(-(-x // m) * m)
 
 
+def always(x) -> Bool[Array, ""]:
+    """A run-time True that XLA cannot fold, for :func:`staged`: the first element of ``x``'s bits,
+    with the lowest set, is non-zero (``abs(x) >= 0`` and similar predicates are folded, and the
+    conditional with them)."""
+    x = jnp.asarray(x).reshape(-1)[0]
+    bits = lax.bitcast_convert_type(
+        x, {1: jnp.uint8, 2: jnp.uint16, 4: jnp.uint32, 8: jnp.uint64}[x.dtype.itemsize]
+    )
+    return (bits | 1) != 0
+
+
+def staged(live, fn, *args):
+    """``fn(*args)``; inside a trace, computed in a conditional on ``live`` so that it is a stage.
+
+    Eagerly each stage is its own compiled call. Traced (a caller's ``jax.jit``, a custom
+    derivative), XLA:CPU would fuse the stages into one another and recompute gathers and index
+    arithmetic per consumer element (the edge-scan 3× slower, its derivative's node tests 5×);
+    ``lax.optimization_barrier`` does not survive its fusion passes, but a conditional's results are
+    buffers. ``live`` is a run-time True (:func:`always`; the other branch gives zeros, so XLA
+    cannot remove the conditional).
+    """
+    if not any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(args)):
+        return fn(*args)
+    shapes = jax.eval_shape(fn, *args)
+    return lax.cond(live, fn, lambda *_: jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), shapes), *args)
+
+
 def _run(vertices, faces, table, grid, directions, shell, slots):
     s, s2, s3, k = slots
     center, radius, comps, offset = _stage_views(vertices, faces, grid=grid, shell=shell)
-    px, py, col, front = _stage_project(comps, offset, directions=directions, shell=shell)
-    cand = _stage_candidates(front, col, table.a, table.b, table.t1, table.t2)
-    slot, most = _stage_slots(cand, slots=s)
-    params = _stage_gather(slot, px, py, col, front, table.a, table.b, table.t1, directions=directions)
-    diff, overflow, counts = _stage_emit(
-        params, most, views=grid[0] * grid[1], directions=directions, shell=shell, long_slots=(s2, s3), span=k
+    stage = partial(staged, always(radius))
+    px, py, col, front = stage(partial(_stage_project, directions=directions, shell=shell), comps, offset)
+    cand = stage(_stage_candidates, front, col, table.a, table.b, table.t1, table.t2)
+    slot, most = stage(partial(_stage_slots, slots=s), cand)
+    params = stage(
+        partial(_stage_gather, directions=directions), slot, px, py, col, front, table.a, table.b, table.t1
     )
+    emit = partial(
+        _stage_emit, views=grid[0] * grid[1], directions=directions, shell=shell, long_slots=(s2, s3), span=k
+    )
+    diff, overflow, counts = stage(emit, params, most)
     return diff, overflow, counts, center, radius
+
+
+_run_jit = jax.jit(_run, static_argnums=(3, 4, 5, 6))
 
 
 def edgescan_slots(
@@ -578,7 +613,8 @@ def _compute(vertices, faces, table, grid, directions, shell, slots, finish=lamb
         slots = _GROWN.get(key, slots)
     while True:
         s, s2, s3, k = slots
-        diff, overflow, counts, center, radius = _run(vertices, faces, table, grid, directions, shell, slots)
+        run = _run if traced else _run_jit  # one compiled call of staged conditionals (~25 % faster)
+        diff, overflow, counts, center, radius = run(vertices, faces, table, grid, directions, shell, slots)
         if traced:
             return finish(eqx.error_if(diff, overflow, _OVERFLOW)), overflow, center, radius
         out = finish(diff)
