@@ -215,14 +215,28 @@ def _cached_slots(kind: str, occ: MeshOccluder, faces: np.ndarray, m, measure, m
     return _SLOTS[key]
 
 
+def _poses(occ: MeshOccluder, unit: np.ndarray) -> list:
+    """The rest pose ``unit`` and five concrete poses of the occluder's animation (t = 0 … 1)."""
+    poses = [unit]
+    if occ.deform is not None:
+        for t in np.linspace(0.0, 1.0, 5):
+            v = _concrete(_vertices_at(occ, jnp.asarray(t, occ.unit_vertices.dtype)))
+            poses += [] if v is None else [v]
+    return poses
+
+
 def _slots(occ: MeshOccluder, faces: np.ndarray, m) -> int | None:
-    """Silhouette slots per viewpoint for ``bsv_gradient = "raycast"``: 1.5 × the largest count at
-    the rest pose (:func:`_cached_slots`); None (every edge: never overflows, slower) if unknown."""
+    """Silhouette slots per viewpoint for ``bsv_gradient = "raycast"``: 1.5 × the largest count over
+    the rest pose and five poses of the animation (:func:`_cached_slots`; an overflow raises when the
+    derivative runs); None (every edge: never overflows, slower) if unknown."""
 
     def measure(unit):
-        counts = np.asarray(bsv_silhouette_counts(unit, faces, grid=m.bsv_grid, shell=m.shell))
         # (np.asarray first: np.max of a jax.Array calls its .max(), which a jit trace would stage)
-        return int(min(int(1.5 * int(counts.max())) + 8, 3 * faces.shape[0] // 2))
+        most = max(
+            int(np.asarray(bsv_silhouette_counts(v, faces, grid=m.bsv_grid, shell=m.shell)).max())
+            for v in _poses(occ, unit)
+        )
+        return int(min(int(1.5 * most) + 8, 3 * faces.shape[0] // 2))
 
     return _cached_slots("raycast", occ, faces, m, measure, max, None)
 
@@ -234,11 +248,7 @@ def _image_slots(occ: MeshOccluder, faces: np.ndarray, m):
     :func:`_cached_slots`; (None, None) — generous defaults, slower — if unknown."""
 
     def measure(unit):
-        poses = [unit]
-        if occ.deform is not None:
-            for t in np.linspace(0.0, 1.0, 5):
-                v = _concrete(_vertices_at(occ, jnp.asarray(t, occ.unit_vertices.dtype)))
-                poses += [] if v is None else [v]
+        poses = _poses(occ, unit)
         es = [edgescan_slots(v, faces, m.bsv_grid, m.directions, m.shell) for v in poses]
         gs = [edgescan_grad_slots(v, faces, m.bsv_grid, m.shell, directions=m.directions) for v in poses]
         return tuple(max(x) for x in zip(*es, strict=True)), tuple(max(x) for x in zip(*gs, strict=True))

@@ -433,6 +433,21 @@ def test_slot_overflow_is_reported_and_slots_suffice(rng):
     np.testing.assert_array_equal(np.asarray(g_open[0]), exact_k)
 
 
+def test_mesh_diff_slot_overflow_raises_under_jit_grad():
+    # bsv_mesh_diff must not drop silhouette edges silently: too few slots raise when the derivative
+    # runs, also under jax.jit(jax.grad(...)), where the primal is dead code
+    x, f = _torus()
+    k = int(np.asarray(bsv_silhouette_counts(x, f, (2, 3), 1.0)).max())
+
+    def grad(slots):
+        loss = lambda v: jnp.sum(bsv_mesh_diff(v, f, N_BANDS, (2, 3), (8, 8), 1.0, slots=slots) ** 2)  # noqa: E731
+        return jax.block_until_ready(jax.jit(jax.grad(loss))(jnp.asarray(x)))
+
+    assert bool(jnp.all(jnp.isfinite(grad(k))))
+    with pytest.raises(Exception, match="ray-cast gradient slots overflowed"):
+        grad(k - 1)
+
+
 def test_samples_orientation_points_out_of_occlusion():
     """m · (c − p) < 0 for the front face (a, b, c) of every used slot; q ≥ 0."""
     x, f = _torus()

@@ -23,7 +23,8 @@ Accuracy (biased where noted): the tangent is the derivative of the *exact* inte
 the 32×32 sampled forward pass, which is a noisy quadrature of it. Edges whose visibility changes
 along their length are integrated to first order only: about 4 % of ‖dS/dX‖ at 8 nodes per edge on
 the bunny, 1 % at 32 (notes §5); convex meshes are exact to quadrature precision. Silhouette edges
-beyond ``slots`` are dropped (the count is reported by :func:`bsv_silhouette_counts`). S has kinks
+beyond ``slots`` are dropped by :func:`bsv_sh_tangent` (which returns the count; :func:`bsv_mesh_diff`
+raises instead). S has kinks
 where p crosses the plane of a face next to a visible silhouette edge; there the one-sided
 derivative of the current facing configuration is returned.
 """
@@ -33,6 +34,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from functools import partial
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -198,6 +200,12 @@ def bsv_silhouette_counts(
     return jnp.sum(fr0 != fr1, axis=-1, dtype=jnp.int32).reshape(grid)
 
 
+_SLOT_OVERFLOW = (
+    "ray-cast gradient slots overflowed: a BSV sample point sees more silhouette edges than slots; "
+    "pass a larger slots (see bsv_silhouette_counts)"
+)
+
+
 def bsv_mesh_diff(
     vertices: Float[ArrayLike, "V 3"],
     faces: Int[ArrayLike, "F 3"],
@@ -224,8 +232,9 @@ def bsv_mesh_diff(
             degenerate faces; open meshes are allowed.
         n, grid, directions, shell: as in :func:`jshadow.visibility.bsv_mesh`.
         forward: optional ``vertices -> (T, P, n²)`` primal; it is not differentiated.
-        slots: silhouette slots per viewpoint (default: all edges, never overflows). Edges beyond it
-            are dropped from the gradient; check :func:`bsv_silhouette_counts`.
+        slots: silhouette slots per viewpoint (default: all edges, never overflows); choose it from
+            :func:`bsv_silhouette_counts`. A viewpoint with more silhouette edges raises at run time
+            when the derivative is evaluated (its edges would be missing from the gradient).
         nodes: Gauss–Legendre nodes per silhouette edge in the angle at p (8: about 4 % error on
             self-occluding meshes, exact on convex ones; the error falls like 1/nodes).
 
@@ -261,8 +270,10 @@ def bsv_mesh_diff(
         (x,), (dx,) = primals, tangents
         out = lax.stop_gradient(forward(x))
         (points, frames), (dpoints, _) = jax.jvp(lambda v: _sample_points(v, grid, shell), (x,), (dx,))
-        a, b, m, wa, wb, _ = _slot_terms(x, faces, table, points, frames, slots=k, nodes=nodes, n=n)
+        a, b, m, wa, wb, count = _slot_terms(x, faces, table, points, frames, slots=k, nodes=nodes, n=n)
+        # on the tangent, not the primal: under jax.jit(jax.grad(...)) the primal is dead code
+        ok = eqx.error_if(jnp.ones((), out.dtype), jnp.any(count > k), _SLOT_OVERFLOW)
         dout = _apply_tangent(wa, wb, a, b, m, dx, dpoints)
-        return out, dout.reshape(out.shape).astype(out.dtype)
+        return out, ok * dout.reshape(out.shape).astype(out.dtype)
 
     return bsv(vertices)
