@@ -140,7 +140,8 @@ def _ring_fans(faces_np: np.ndarray, table: EdgeTable) -> tuple[np.ndarray, np.n
     centre of entry i (False at the seam between the fans, on padding, which repeats the last entry,
     and between two cycles of a vertex whose neighbourhood is not a single disc). This is the set of
     faces touching a or b minus the edge's own two; each spoke centre → u_i serves two faces, so a
-    point needs about a third of the per-face orientation tests. Cached per topology.
+    point needs two orientation tests per face instead of three (the bunny's padded rows: 47
+    instead of 66). Cached per topology.
     """
     key = (faces_np.shape, hash(faces_np.tobytes()))
     if key in _FANS:
