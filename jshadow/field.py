@@ -38,6 +38,7 @@ __all__ = [
     "unit_visibility",
     "interpolate_bsv",
     "bsv_visibility_sh",
+    "bsv_visibility_and_distance",
     "frame_to_world",
     "frame_to_world_cs",
     "sphere_visibility_sh",
@@ -82,6 +83,8 @@ def bsv_visibility_sh(
 ) -> Float[Array, "... n2"]:
     """World-frame visibility SH of one BSV occluder at receiver points (..., 3) → (..., n²).
 
+    (:func:`bsv_visibility_and_distance` also returns each receiver's distance to the centre.)
+
     ``table`` is an occlusion-kind M_k table whose distances are in units of the sampling-shell
     radius ``bsv.shell_radius`` (k = R/d). The BSV's bands are taken from its coefficients; the
     table must have at least as many. ``bands`` (default: the BSV's) truncates the result after
@@ -98,6 +101,15 @@ def bsv_visibility_sh(
     (:func:`jshadow.sh.rotate_zyz_cs`, ``prepared=True``), so no other transcendental function is
     evaluated.
     """
+    return bsv_visibility_and_distance(bsv, table, points, bands)[0]
+
+
+def bsv_visibility_and_distance(
+    bsv: BSV, table: MkTable, points: Float[Array, "... 3"], bands: int | None = None
+) -> tuple[Float[Array, "... n2"], Float[Array, "..."]]:
+    """:func:`bsv_visibility_sh` and the distance |x − c| (...,) from each receiver to the occluder's
+    centre, which the field computes anyway (the combination orders entities by it; a separate
+    ``norm`` of the (N, 3) offsets cost XLA:CPU about 0.3 ms per 27501 receivers)."""
     t_n, p_n, _ = bsv.coeffs.shape
     n = sh.sh_bands_of(bsv.coeffs.shape[-1]) if bands is None else int(bands)
     rel = points - bsv.center
@@ -125,7 +137,8 @@ def bsv_visibility_sh(
                 w = (w_t * w_i * w_j).astype(flat.dtype)
                 s_d = s_d + w[..., None] * flat[((t0 + dt) * t_n + i) * p_n + j]
     s_w = sh.rotate_zyz_cs(s_d, (cos_phi, sin_phi), (cos_theta, sin_theta), prepared=True)
-    return jnp.where(mk_in_range(table, k)[..., None], s_w, unit_visibility(d.shape, n, s_w.dtype))
+    vis = jnp.where(mk_in_range(table, k)[..., None], s_w, unit_visibility(d.shape, n, s_w.dtype))
+    return vis, d
 
 
 _NODE_MATRICES: dict = {}

@@ -31,7 +31,7 @@ from jaxtyping import Array, Float
 
 from . import sh
 from .entities import MeshOccluder, Scene, SphereOccluder, frame_time, receivers_at_time
-from .field import bsv_visibility_sh, sphere_light_blocked, sphere_visibility_sh, unit_visibility
+from .field import bsv_visibility_and_distance, sphere_light_blocked, sphere_visibility_sh, unit_visibility
 from .geometry import bounding_sphere
 from .lights import (
     IrradianceMap,
@@ -280,15 +280,12 @@ def occluder_visibilities(
             groups.setdefault(b.coeffs.shape, []).append(i)
     for idx in groups.values():
         if len(idx) == 1:
-            b = bsvs[idx[0]]
-            vs, ds = bsv_visibility_sh(b, table, points, n), jnp.linalg.norm(points - b.center, axis=-1)
-            vis[idx[0]], dist[idx[0]] = vs, ds
+            vis[idx[0]], dist[idx[0]] = bsv_visibility_and_distance(bsvs[idx[0]], table, points, n)
             continue
         stacked = jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *[bsvs[i] for i in idx])
         # lax.map, not vmap: batching the field's gathers and small matmuls over occluders was slower
         # on XLA:CPU than one occluder after another (bench_render.py, 16 occluders: field 88 -> 65 ms)
-        vs = jax.lax.map(lambda b: bsv_visibility_sh(b, table, points, n), stacked)
-        ds = jnp.linalg.norm(points[None] - stacked.center[:, None, :], axis=-1)
+        vs, ds = jax.lax.map(lambda b: bsv_visibility_and_distance(b, table, points, n), stacked)
         for j, i in enumerate(idx):
             vis[i], dist[i] = vs[j], ds[j]
     return vis, dist

@@ -195,6 +195,11 @@ def test_grouped_bsv_occluders_equal_one_by_one():
         np.testing.assert_allclose(
             d, np.linalg.norm(np.asarray(pts) - np.asarray(b.center), axis=-1), rtol=1e-6
         )
+    # a lone BSV occluder takes the other path (no lax.map); its distances come from the field too
+    one = Scene(SMALL, plane(n=6), occ[:1], (), Environment(f32(1, 1, 1)))
+    (v1,), (d1,) = occluder_visibilities(one, bsvs[:1], pts)
+    np.testing.assert_allclose(v1, vis[0], rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(d1, dist[0], rtol=1e-6)
 
 
 @pytest.mark.parametrize("shape", [(), (1,), (3, 1, 2)])
