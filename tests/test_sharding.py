@@ -105,14 +105,12 @@ SCRIPT = textwrap.dedent(
 )
 
 
-@pytest.fixture(scope="module")
-def two_devices(tmp_path_factory):
-    d = tmp_path_factory.mktemp("sharding")
-    script = d / "run.py"
+def _two_devices(tmp_path):
+    script = tmp_path / "run.py"
     script.write_text(SCRIPT)
     env = dict(os.environ, JAX_PLATFORMS="cpu", XLA_FLAGS="--xla_force_host_platform_device_count=2")
     p = subprocess.run(
-        [sys.executable, str(script), str(d)], capture_output=True, text=True, timeout=600, env=env
+        [sys.executable, str(script), str(tmp_path)], capture_output=True, text=True, timeout=600, env=env
     )
     assert p.returncode == 0, p.stderr[-3000:]
     line = [x for x in p.stdout.splitlines() if x.startswith("RESULT ")]
@@ -120,16 +118,19 @@ def two_devices(tmp_path_factory):
     return json.loads(line[0][len("RESULT ") :])
 
 
-def test_two_host_devices_are_used(two_devices):
-    r = two_devices
+def test_two_host_devices_sharded_receivers_frames_and_cli(tmp_path):
+    # One subprocess with two CPU devices (about 100 s, mostly compilation) checks all of the
+    # module docstring's multi-device claims; as separate tests sharing a module fixture, each
+    # pytest-xdist worker that picked one of them up ran the subprocess again.
+    r = _two_devices(tmp_path)
+
+    # the devices are used: pieces and visibilities sharded over both, frames round-robin
     assert r["devices"] == 2
     assert r["piece_size"] == 16 and r["piece_devices"] == 2 and r["vis_devices"] == 2
-    f0, f1, f2 = r["frame_devices"]  # round-robin
+    f0, f1, f2 = r["frame_devices"]
     assert f0 == f2 != f1
 
-
-def test_sharded_receivers_agree_to_rounding_and_frames_bitwise(two_devices):
-    diffs = two_devices["diffs"]
+    diffs = r["diffs"]
     assert len(diffs) == 3 * 4 + 3
     # receiver positions and normals are computed once per frame, before sharding: identical
     assert all(v[0] for k, v in diffs.items() if k.endswith(("points", "normals"))), diffs
@@ -142,11 +143,10 @@ def test_sharded_receivers_agree_to_rounding_and_frames_bitwise(two_devices):
     print(f"largest relative difference: {worst:.3g} ({worst / (tol / 8):.1f} ulp)")
     assert worst <= tol, diffs
 
-
-def test_cli_devices_flag(two_devices):
-    rc1, rc2, rel = two_devices["cli"]
-    assert rc1 == 0 and rc2 == 0 and rel <= 8 * float(np.finfo(np.float32).eps)
-    assert two_devices["cli_timings"] == [2, 20]
+    # `jshadow render --devices 2 --chunk 20` agrees with one device and reports its layout
+    rc1, rc2, rel = r["cli"]
+    assert rc1 == 0 and rc2 == 0 and rel <= tol
+    assert r["cli_timings"] == [2, 20]
 
 
 def test_device_selection_and_padding_on_one_device():
