@@ -12,7 +12,7 @@ from jshadow._numerics import eps
 from jshadow.geometry import bounding_sphere, icosphere, load_mesh
 from jshadow.sh import sh_basis
 from jshadow.visibility import ray_triangle_any_hit
-from jshadow.visibility._bsv import BSV, bsv_sample_points
+from jshadow.visibility._bsv import BSV, bsv_mesh, bsv_sample_points
 from jshadow.visibility._directions import cap_sh_projection
 from jshadow.visibility._edgescan import (
     EdgeTable,
@@ -192,6 +192,29 @@ def test_overflow_is_repaired_and_traced_overflow_raises(bunny_small):
         jax.block_until_ready(jax.jit(lambda x: coeffs(x, (32, 1, 1, 1)))(v))
     default = jax.jit(lambda x: coeffs(x, None))(v)  # traced without slots: generous defaults
     np.testing.assert_allclose(np.asarray(default), np.asarray(good), atol=eps(jnp.float32))
+
+
+def test_traced_overflow_can_fall_back_to_rays(bunny_small):
+    # on_overflow="brute": a traced call whose slots overflow returns the brute-force BSV of the
+    # same pose (rays over the Gauss-Legendre hemisphere) instead of raising; without overflow the
+    # edge-scan's own result
+    v, f = bunny_small
+    table = build_edge_table(f)
+    slots = edgescan_slots(v, f, GRID, (16, 16), SHELL, edge_table=table)
+
+    def coeffs(verts, slots):
+        kw = dict(edge_table=table, slots=slots, on_overflow="brute")
+        return bsv_mesh_edgescan(verts, f, 2, GRID, (16, 16), SHELL, **kw).coeffs
+
+    good = bsv_mesh_edgescan(v, f, 2, GRID, (16, 16), SHELL, edge_table=table, slots=slots).coeffs
+    brute = bsv_mesh(v, f, 2, GRID, (16, 16), SHELL, method="brute").coeffs
+    fine = jax.jit(lambda x: coeffs(x, slots))(v)
+    np.testing.assert_allclose(np.asarray(fine), np.asarray(good), atol=eps(jnp.float32))
+    fell_back = jax.jit(lambda x: coeffs(x, (32, 1, 1, 1)))(v)
+    np.testing.assert_allclose(np.asarray(fell_back), np.asarray(brute), atol=eps(jnp.float32))
+    assert float(jnp.max(jnp.abs(brute - good))) > 1e-3  # the two quadratures differ: it did switch
+    with pytest.raises(ValueError, match="on_overflow"):
+        bsv_mesh_edgescan(v, f, 2, GRID, (16, 16), SHELL, on_overflow="ignore")
 
 
 def test_similarity_invariance(bunny_small):

@@ -446,11 +446,13 @@ def _prepare(vertices, faces, edge_table):
         raise ValueError(f"vertices must have shape (V, 3) with V >= 1, got {vertices.shape}")
     if not jnp.issubdtype(vertices.dtype, jnp.floating):
         vertices = vertices.astype(jnp.result_type(float))
-    faces = jnp.asarray(faces)
+    if not isinstance(faces, jax.Array):  # NumPy faces stay concrete under a trace
+        faces = np.asarray(faces)
     if faces.ndim != 2 or faces.shape[-1] != 3 or not jnp.issubdtype(faces.dtype, jnp.integer):
         raise ValueError(f"faces must be an int array of shape (F, 3), got {faces.dtype} {faces.shape}")
     if edge_table is None:
         edge_table = _cached_edge_table(faces, vertices.shape[0])
+    faces = jnp.asarray(faces)
     if edge_table.num_faces != faces.shape[0] or edge_table.num_vertices > vertices.shape[0]:
         raise ValueError(
             f"edge_table was built for {edge_table.num_faces} faces and {edge_table.num_vertices} "
@@ -598,9 +600,9 @@ _OVERFLOW = "edge-scan slots overflowed: pass larger slots=(S, S2, S3, K) (see e
 _GROWN: dict = {}  # slots that overflowed -> the larger slots that worked (per configuration)
 
 
-def _compute(vertices, faces, table, grid, directions, shell, slots, finish=lambda diff: diff):
+def _compute(vertices, faces, table, grid, directions, shell, slots, finish=lambda diff: diff, check=True):
     """``finish(diff)`` of the difference images, retrying with larger slots on overflow (concrete)
-    or flagging it (traced).
+    or flagging it (traced: raising at run time unless ``check`` is False).
 
     ``finish`` is dispatched before the host waits for the overflow flag, so it runs without a gap.
     Concrete overflows are remembered: later calls with the same configuration and slots start
@@ -616,7 +618,8 @@ def _compute(vertices, faces, table, grid, directions, shell, slots, finish=lamb
         run = _run if traced else _run_jit  # one compiled call of staged conditionals (~25 % faster)
         diff, overflow, counts, center, radius = run(vertices, faces, table, grid, directions, shell, slots)
         if traced:
-            return finish(eqx.error_if(diff, overflow, _OVERFLOW)), overflow, center, radius
+            diff = eqx.error_if(diff, overflow, _OVERFLOW) if check else diff
+            return finish(diff), overflow, center, radius
         out = finish(diff)
         if not bool(overflow):
             return out, overflow, center, radius
@@ -665,6 +668,7 @@ def bsv_mesh_edgescan(
     *,
     edge_table: EdgeTable | None = None,
     slots: tuple[int, int, int, int] | None = None,
+    on_overflow: str = "raise",
 ) -> BSV:
     """BSV of a closed mesh by the silhouette-edge scanline on a gnomonic cone image.
 
@@ -688,12 +692,18 @@ def bsv_mesh_edgescan(
         outside the image are free and enter exactly through the constant term.
 
     Overflow of the static slots is never silent: with concrete vertices the computation is
-    redone with larger slots (one more compile, remembered for later calls); under tracing it
-    raises at run time (``eqx.error_if``). The coefficients have zero derivative with respect to
-    the vertices (binary visibility); ``center`` and ``radius`` are differentiable.
+    redone with larger slots (one more compile, remembered for later calls). Under tracing,
+    ``on_overflow="raise"`` raises at run time (``eqx.error_if``); ``on_overflow="brute"`` returns
+    the brute-force BSV of :func:`jshadow.visibility.bsv_mesh` instead (rays over a
+    Gauss–Legendre hemisphere of the same ``directions``: another quadrature of the same integral,
+    compiled as the other branch of a conditional and run only when the slots overflow). The
+    coefficients have zero derivative with respect to the vertices (binary visibility); ``center``
+    and ``radius`` are differentiable.
     """
     if not (isinstance(n, int | np.integer) and n >= 1):
         raise ValueError(f"n (number of SH bands) must be a positive int, got {n!r}")
+    if on_overflow not in ("raise", "brute"):
+        raise ValueError(f"on_overflow must be 'raise' or 'brute', got {on_overflow!r}")
     vertices, faces, table, grid, directions, shell, slots = _resolve(
         vertices, faces, grid, directions, shell, edge_table, slots
     )
@@ -702,7 +712,17 @@ def bsv_mesh_edgescan(
     def finish(diff):
         return _stage_sh(diff, basis_w, n=int(n), grid=grid)
 
-    coeffs, _, center, radius = _compute(vertices, faces, table, grid, directions, shell, slots, finish)
+    fallback = on_overflow == "brute" and isinstance(vertices, jax.core.Tracer)
+    coeffs, overflow, center, radius = _compute(
+        vertices, faces, table, grid, directions, shell, slots, finish, check=not fallback
+    )
+    if fallback:
+        from ._bsv import bsv_mesh  # (_bsv imports this module lazily too)
+
+        def brute(v):
+            return bsv_mesh(v, faces, int(n), grid, directions, shell, method="brute").coeffs
+
+        coeffs = lax.cond(overflow, brute, lambda v: coeffs, vertices)
     return BSV(coeffs, center, radius, shell * radius)
 
 
