@@ -109,7 +109,7 @@ def bsv_visibility_and_distance(
 ) -> tuple[Float[Array, "... n2"], Float[Array, "..."]]:
     """:func:`bsv_visibility_sh` and the distance |x − c| (...,) from each receiver to the occluder's
     centre, which the field computes anyway (the combination orders entities by it; a separate
-    ``norm`` of the (N, 3) offsets cost XLA:CPU about 0.3 ms per 27501 receivers)."""
+    ``norm`` of the (N, 3) offsets cost XLA:CPU about 0.2 ms per 27501 receivers, BENCHMARKS.md)."""
     t_n, p_n, _ = bsv.coeffs.shape
     n = sh.sh_bands_of(bsv.coeffs.shape[-1]) if bands is None else int(bands)
     rel = points - bsv.center

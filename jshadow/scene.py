@@ -161,8 +161,8 @@ def _differentiable_coeffs(occ: MeshOccluder, v, faces: np.ndarray | None, m, kw
     if _uses_edgescan(m, faces):
         # the edge-scan, as the eager call and the Renderer compute it: bsv_mesh would cast rays
         # under a trace (another quadrature: 0.6 % apart; the bunny's jitted frame 190 ms instead of
-        # 10 ms). Slots measured on concrete poses; if a traced pose overflows them, that call falls
-        # back to the rays instead of raising.
+        # 6 ms, BENCHMARKS.md). Slots measured on concrete poses; if a traced pose overflows them,
+        # that call falls back to the rays instead of raising.
         es = _edgescan_slots(occ, faces, m)
 
         def forward(x):
@@ -268,7 +268,8 @@ def _edgescan_slots(occ: MeshOccluder, faces: np.ndarray, m):
     """Edge-scan slots ``(S, S2, S3, K)`` of the BSV forward pass (1.5 margin): the largest over the
     rest pose and five poses of the animation (:func:`_cached_slots`); None (generous defaults,
     slower under a trace) if no concrete pose of this topology is known. An overflow repairs itself
-    on concrete vertices and raises under a trace."""
+    on concrete vertices; under a trace the raycast forward falls back to rays
+    (:func:`_differentiable_coeffs`) and the image-mode derivative raises."""
 
     def measure(unit):
         es = [edgescan_slots(v, faces, m.bsv_grid, m.directions, m.shell) for v in _poses(occ, unit)]

@@ -195,10 +195,10 @@ def bsv_mesh(
         method: "brute" casts ``T·P·n_theta·n_phi`` rays with :func:`ray_fan_any_hit` (any mesh,
             any shell); "edgescan" uses ``jshadow.visibility.bsv_mesh_edgescan`` (closed manifold
             meshes, shell > 1; its ``directions`` are a gnomonic cone image); "auto" takes edgescan
-            when shell > 1 and the faces are concrete and closed-manifold, and brute otherwise —
-            also under ``jax.jit``, where the faces are converted inside the trace (the traced
-            edge-scan needs static slot sizes measured on a concrete pose: call
-            ``bsv_mesh_edgescan(..., slots=edgescan_slots(rest_pose, ...))`` for it).
+            when shell > 1 and the faces are concrete and closed-manifold, and brute otherwise.
+            Under ``jax.jit`` it casts rays (the faces become a tracer when converted inside the
+            trace, and a traced edge-scan needs static slot sizes measured on a concrete pose): call
+            ``bsv_mesh_edgescan(..., slots=edgescan_slots(rest_pose, ...))`` for the edge-scan there.
         face_chunk, origin_chunk: chunk sizes of the brute-force ray caster.
 
     Binary visibility: the result has no useful gradient with respect to the vertices.
