@@ -66,7 +66,7 @@ class Method:
     ``bsv_gradient`` chooses how the BSV's vertex derivative (its silhouette-edge term) decides which
     silhouette points are visible: "raycast" (default; rays against the mesh,
     :func:`jshadow.visibility.bsv_mesh_diff`) or "image" (read off the edge-scan's own occlusion
-    images, :func:`jshadow.visibility.bsv_mesh_edgescan_diff`: 9–18× faster on whole frames of the
+    images, :func:`jshadow.visibility.bsv_mesh_edgescan_diff`: 14–34× faster on whole frames of the
     shipped deforming configs, exact on convex meshes, biased on finely tessellated self-occluding
     ones; BENCHMARKS.md "BSV gradients").
     """
