@@ -479,13 +479,14 @@ def combine(
         groups = tuple(g for g in both if g[1] > g[0])
     transfers = [sh.clamped_cosine(nrm, n) for _, _, nrm in groups]  # max(0, n·ω): (1 or rows, n²)
 
-    def by_group(x, shared_fn, row_fn):
+    def by_group(x, shared_fn, row_fn, finish=lambda part, k: part):
         """(N, ·) rows from per-receiver ``x`` (N, ·): ``shared_fn(x, T₀)`` for a shared-normal group
         (on all rows, then sliced: XLA:CPU copies a sliced GEMM operand first), ``row_fn(x_rows, T)``
-        for a group with a normal per row."""
+        for a group with a normal per row; ``finish(part, k)`` of group k before the concatenation
+        (so that a group's shared (1, ·) terms broadcast instead of being stored per row)."""
         parts = [
-            shared_fn(x, t[0])[a:b] if t.shape[0] == 1 else row_fn(x[a:b], t)
-            for (a, b, _), t in zip(groups, transfers, strict=True)
+            finish(shared_fn(x, t[0])[a:b] if t.shape[0] == 1 else row_fn(x[a:b], t), k)
+            for k, ((a, b, _), t) in enumerate(zip(groups, transfers, strict=True))
         ]
         return jnp.concatenate(parts, 0) if len(parts) > 1 else parts[0]
 
@@ -494,24 +495,26 @@ def combine(
     if scene.environment is not None:
         l_env = lighting.env_sh.astype(dtype)  # (n², 3)
         v_all = _product(vis)
-        exact = (
-            _stack_groups(groups, [environment_irradiance(lighting.env_map, nrm) for _, _, nrm in groups])
-            if ratio
-            else None
-        )
-        exact = None if exact is None else exact.astype(dtype)
-        unoccluded = _stack_groups(groups, [t @ l_env for t in transfers])  # double product: exact, n bands
+        # per group, (1, 3) for a shared normal: the exact unoccluded irradiance (ratio shading) and
+        # the n-band double product, which is exact for n-band lighting
+        env_map = lighting.env_map
+        exact = [environment_irradiance(env_map, nrm).astype(dtype) for _, _, nrm in groups] if ratio else []
+        unoccluded = [t @ l_env for t in transfers]
+
+        def finish(occluded, k):
+            return _shadow_ratio(occluded, unoccluded[k], exact[k]) if ratio else occluded
+
         if v_all is None:
-            e = e + (exact if ratio else unoccluded)
+            e = e + _stack_groups(groups, exact if ratio else unoccluded)
         else:
             m_env = sh.product_matrix(l_env.T)  # (3, n², n²): "multiply by L_env", per channel
             # Σ_ik V_i M_env[c, i, k] T_k = V · w_c with the shading vector w_c = M_env[c] T
-            occluded = by_group(
+            e = e + by_group(
                 v_all,
                 lambda v, t0: v @ jnp.einsum("cik,k->ic", m_env, t0),
                 lambda v, t: jnp.einsum("ni,cik,nk->nc", v, m_env, t),
+                finish,
             )
-            e = e + (_shadow_ratio(occluded, unoccluded, exact) if ratio else occluded)
 
     for light in scene.lights:
         one = jnp.ones((1,), dtype)
