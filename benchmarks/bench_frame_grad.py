@@ -119,9 +119,9 @@ def main(argv=None) -> int:
     ap.add_argument(
         "--bsv-gradient",
         nargs="*",
-        default=["raycast"],
+        default=["image", "raycast"],
         choices=["raycast", "image"],
-        help="[method] bsv_gradient settings to time (same run)",
+        help="[method] bsv_gradient settings to time (same run; 'auto' is 'image' for these configs)",
     )
     args = ap.parse_args(argv)
     load = os.getloadavg()[0]

@@ -40,7 +40,7 @@ __all__ = [
 
 
 SHADINGS = ("product", "ratio")
-BSV_GRADIENTS = ("raycast", "image")
+BSV_GRADIENTS = ("auto", "raycast", "image")
 
 
 @dataclass(frozen=True)
@@ -64,11 +64,13 @@ class Method:
       occluder/sphere light overlap): see :func:`jshadow.scene.combine`.
 
     ``bsv_gradient`` chooses how the BSV's vertex derivative (its silhouette-edge term) decides which
-    silhouette points are visible: "raycast" (default; rays against the mesh,
-    :func:`jshadow.visibility.bsv_mesh_diff`) or "image" (read off the edge-scan's own occlusion
-    images, :func:`jshadow.visibility.bsv_mesh_edgescan_diff`: 14–34× faster on whole frames of the
-    shipped deforming configs, exact on convex meshes, biased on finely tessellated self-occluding
-    ones; BENCHMARKS.md "BSV gradients").
+    silhouette points are visible: "image" (the winding number of the projected silhouette in the
+    edge-scan's image plane, exact up to float rounding; :func:`jshadow.visibility.bsv_mesh_edgescan_diff`;
+    needs the edge-scan forward pass: shell > 1 and a closed manifold mesh), "raycast" (rays against
+    the mesh, :func:`jshadow.visibility.bsv_mesh_diff`; any mesh and shell) or "auto" (default:
+    "image" where the forward pass is the edge-scan, else "raycast";
+    :func:`jshadow.scene.bsv_gradient_mode`). Both agree with each other and with finite differences
+    of whole frames; "image" is 11–31× faster there (BENCHMARKS.md "BSV gradients").
     """
 
     sh_bands: int = 4  # n: n² coefficients
@@ -82,7 +84,7 @@ class Method:
     bsv_method: str = "auto"  # "auto" | "brute" | "edgescan"
     bsv_bands: int | None = None  # bands of the BSV and M_k (None: sh_bands + 1, at most 8)
     shading: str = "ratio"  # "ratio" | "product" (Zhou et al. 2005, the paper)
-    bsv_gradient: str = "raycast"  # "raycast" | "image" (silhouette visibility of the BSV derivative)
+    bsv_gradient: str = "auto"  # "auto" | "raycast" | "image" (silhouette visibility of the BSV derivative)
 
     @classmethod
     def paper(cls, **options) -> Method:

@@ -159,20 +159,20 @@ def test_jit_of_an_edgescan_render_equals_the_eager_render():
 def test_traced_rest_pose_reuses_the_slot_sizes_measured_on_a_concrete_one():
     # fitting per-vertex offsets traces the rest pose: the silhouette slot sizes measured on the
     # concrete pose of the same topology must be reused (not "every edge", not a guess)
-    from jshadow.scene import _image_slots, _slots
+    from jshadow.scene import _image_grad_slots, _slots
 
     occ = scene_with(StretchY(jnp.float32(0.2))).occluders[0]
     faces = np.asarray(occ.faces)
     image = Method(bsv_grid=(8, 12), directions=(16, 16), bsv_gradient="image")
-    concrete = (_slots(occ, faces, METHOD), _image_slots(occ, faces, image))
+    concrete = (_slots(occ, faces, METHOD), _image_grad_slots(occ, faces, image))
     seen = []
 
     @jax.jit
     def probe(u):
         o = eqx.tree_at(lambda o: o.unit_vertices, occ, u)
-        seen.append((_slots(o, faces, METHOD), _image_slots(o, faces, image)))
+        seen.append((_slots(o, faces, METHOD), _image_grad_slots(o, faces, image)))
         return u
 
     probe(occ.unit_vertices + 0.01)
-    assert concrete[0] is not None and concrete[1][0] is not None
+    assert concrete[0] is not None and concrete[1] is not None
     assert seen == [concrete]

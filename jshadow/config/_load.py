@@ -212,7 +212,7 @@ def _method(t: _Table) -> MethodConfig:
             t.integer("bsv_bands", 4, lo=1, hi=8) if t.has("bsv_bands") else (sh_bands if paper else None)
         ),
         shading=t.string("shading", "product" if paper else "ratio", choices=SHADINGS),
-        bsv_gradient=t.string("bsv_gradient", "raycast", choices=BSV_GRADIENTS),
+        bsv_gradient=t.string("bsv_gradient", "auto", choices=BSV_GRADIENTS),
     )
     try:
         return MethodConfig(**cfg)

@@ -86,8 +86,8 @@ class MethodConfig(eqx.Module):
     "sphere" (extrapolation model), ``radial_samples`` tabulated distances, ``d_range`` their range in
     shell radii, ``bsv_method`` "auto" | "brute" | "edgescan", ``bsv_bands`` bands of the BSV and
     M_k (≥ ``sh_bands``; default ``sh_bands`` + 1, or ``sh_bands`` for the paper), ``shading``
-    "ratio" | "product" (see :func:`jshadow.scene.combine`), ``bsv_gradient`` "raycast" | "image"
-    (visibility in the BSV's vertex derivative, see :class:`jshadow.entities.Method`).
+    "ratio" | "product" (see :func:`jshadow.scene.combine`), ``bsv_gradient`` "auto" | "raycast" |
+    "image" (visibility in the BSV's vertex derivative, see :class:`jshadow.entities.Method`).
     """
 
     preset: str = eqx.field(static=True, default="default")
@@ -102,7 +102,7 @@ class MethodConfig(eqx.Module):
     bsv_method: str = eqx.field(static=True, default="auto")
     bsv_bands: int | None = eqx.field(static=True, default=None)
     shading: str = eqx.field(static=True, default="ratio")
-    bsv_gradient: str = eqx.field(static=True, default="raycast")
+    bsv_gradient: str = eqx.field(static=True, default="auto")
 
     def __check_init__(self):
         if self.model not in MODELS:

@@ -7,8 +7,9 @@
 * :mod:`._bsv`: the BSV module, brute-force and analytic samplers, and reuse across frames.
 * :mod:`._edgescan`: the fast BSV for closed meshes on a shell R > r (silhouette-edge scanline).
 * :mod:`._silhouette`, :mod:`._bsv_grad`: silhouette edges and the BSV's vertex gradients.
-* :mod:`._edgescan_grad`: the edge-scan BSV's vertex gradient in the image plane, with visibility
-  read off the edge-scan's own images (fast, biased on self-occluding meshes).
+* :mod:`._edgescan_grad`: the edge-scan BSV's vertex gradient in the image plane, with the
+  visibility of each silhouette point from the winding number of the projected silhouette (exact;
+  11–31× faster than the ray-cast visibility on whole frames).
 """
 
 from ._bsv import BSV as BSV

@@ -396,12 +396,19 @@ def _stage_emit(params, most, *, views, directions, shell, long_slots, span):
 
 
 @jax.jit
-def _stage_occlusion(diff):
-    """Occlusion (G, N_x, N_y) (column-major images) from the difference images (G, N_x, N_y + 1)."""
+def _stage_counts(diff):
+    """Layer counts (G, N_x, N_y) (column-major images) from the difference images (G, N_x, N_y + 1):
+    the winding number of the projected silhouette at each pixel centre."""
     g, nx, ny1 = diff.shape
     triu = (jnp.arange(ny1)[:, None] <= jnp.arange(ny1 - 1)[None, :]).astype(diff.dtype)  # (N_y + 1, N_y)
-    count = diff.reshape(g * nx, ny1) @ triu  # prefix sums over rows as one matmul: layer counts
-    return (count != 0).reshape(g, nx, ny1 - 1)
+    count = diff.reshape(g * nx, ny1) @ triu  # prefix sums over rows as one matmul
+    return count.reshape(g, nx, ny1 - 1)
+
+
+@jax.jit
+def _stage_occlusion(diff):
+    """Occlusion (G, N_x, N_y) (column-major images) from the difference images (G, N_x, N_y + 1)."""
+    return _stage_counts(diff) != 0
 
 
 @partial(jax.jit, static_argnames=("n", "grid"))

@@ -1,4 +1,4 @@
-"""Vertex derivative of the edge-scan BSV in the image plane, with visibility read off its own images.
+"""Vertex derivative of the edge-scan BSV in the image plane, with exact silhouette visibility.
 
 The edge-scan sampler (:mod:`jshadow.visibility._edgescan`) computes, per shell point p, the occluded
 region Ω of the gnomonic image of the cone that holds the mesh. The SH coefficients are
@@ -21,43 +21,44 @@ in its front-facing face) and ``n₃ = (A, 1) × (B, 1)``, the edge's line is ``
 
 which is linear in the vertex and viewpoint motion and vanishes smoothly for an edge that projects
 to a point (n₃ = 0): no division by the edge length anywhere. Only *visible* parts of silhouette
-edges bound Ω. Their visibility χ at a node is decided without casting rays, in O(1) per node:
-
-* the pixel one pixel beyond the node along the outward normal must be free in the forward pass's
-  own occlusion image (that pixel centre lies at least 0.29 px outside the edge's own line, so the
-  edge never hides itself), and
-* no face around the edge's end points (the ring of faces touching a or b) may cover the node: the
-  contour of a finely tessellated mesh zigzags below the pixel size, and edges folded back under
-  their neighbours are invisible to the image.
+edges bound Ω. Their visibility χ at a node is decided exactly, without casting rays: the layer
+count of the forward pass is the winding number of the projected silhouette, which changes by ±1
+exactly where a silhouette edge is crossed, so the count just beside a node q follows from the
+count at the centre C of q's pixel plus the signed crossings of the segment C → q by the other
+silhouette edges of that pixel; q lies on the boundary of Ω iff the count on one side of its edge
+is 0 (:func:`_winding_chi`). An earlier version read χ off the sampled occlusion image (the pixel
+beyond the node) plus a test against the faces around the edge: contours of finely tessellated
+meshes zigzag below the pixel size, and that made the bunny's derivative a third too large.
 
 Layout of the computation (the tangent is linear, so JAX transposes it for reverse mode):
 
-1. all (silhouette edge, view) pairs, packed and compacted into ``S`` static slots over all views
-   (the same compaction as the edge-scan's, but not restricted to edges that cross a pixel column);
-2. per slot and Gauss–Legendre node t_k the image test; the nodes that pass it (the bunny: 40 % of
-   its silhouette nodes) are compacted again into ``N`` static node slots, and only those are
-   tested against the faces around the edge's end points, walked as two fans (each spoke's
-   orientation serves two faces);
-3. per node the scalar ``s = W_k χ_k w (α_k n₃·δq_a + β_k n₃·δq_b)`` with primal weights, splatted
+1. all (silhouette edge, view) pairs, packed and compacted into ``S`` static slots over all views,
+   grouped by view (the same compaction as the edge-scan's, but not restricted to edges that
+   cross a pixel column);
+2. the pixel lists: each pair enters every pixel of its projected bounding box (``Q`` static
+   entries, the bunny: 2.1 per pair at 32²), sorted by (view, pixel) as one packed int32 key;
+3. per Gauss–Legendre node t_k its pixel's list, read in tiers (16 entries for every node; the
+   next 32 and then the rest, up to the static ``window``, for the nodes of longer lists,
+   compacted), the crossing test and χ; the visible nodes (the bunny: 20 % of its silhouette
+   nodes) are compacted into ``N`` static node slots;
+4. per node the scalar ``s = W_k χ_k w (α_k n₃·δq_a + β_k n₃·δq_b)`` with primal weights, splatted
    bilinearly onto the (N_y + 1) × (N_x + 1) pixel-corner grid of its view;
-4. ``dV = −D @ (Y J)`` with the corner values of ``Y_i J`` (one matrix product for all views).
+5. ``dV = −D @ (Y J)`` with the corner values of ``Y_i J`` (one matrix product for all views).
 
-In reverse mode step 4 becomes one product of the cotangent with the corner table (the cotangent
-as a function on the image), step 3 a bilinear lookup per node, and the vertex gradient a
+In reverse mode step 5 becomes one product of the cotangent with the corner table (the cotangent
+as a function on the image), step 4 a bilinear lookup per node, and the vertex gradient a
 scatter onto the two vertices of each node: nothing of size (slots × n²) is formed. Each step is a
 :func:`~jshadow.visibility._edgescan.staged` computation, so that XLA does not fuse the gathers of
-one step into the next and recompute them per element (the face test was 5× slower that way).
-Both slot counts are measured on concrete poses (:func:`edgescan_grad_slots`); an overflow
-raises at run time, also under ``jax.jit(jax.grad(...))``.
+one step into the next and recompute them per element. All static sizes are measured on concrete
+poses (:func:`edgescan_grad_slots`); an overflow raises at run time, also under
+``jax.jit(jax.grad(...))``.
 
-Accuracy (tests/test_edgescan_grad.py; BENCHMARKS.md "BSV gradients"): on convex meshes every
-silhouette edge is visible and only the bilinear ``Y J`` table separates the result from the exact
-derivative (3.5e-4 relative at 64² against converged differences); on a coarse self-occluding torus it
-converges to the ray-cast derivative with nodes and pixels (0.5–2 % at 16 nodes and 128²; 3–12 %,
-cosine ≥ 0.993, at the default 2 nodes and 32²). On finely tessellated self-occluding meshes
-(bunny, airplane) χ is **biased**: folded contour edges hidden by faces beyond the ring, or within a
-pixel of another silhouette, count as visible, so the derivative is 10–35 % too large with a cosine
-of 0.97–0.985 to the ray-cast one. Use ``bsv_gradient = "raycast"`` where the magnitude matters.
+Accuracy (tests/test_edgescan_grad.py; BENCHMARKS.md "BSV gradients"): χ equals the winding number
+of all silhouette edges of the view at every node (up to float rounding: 1 node of 273010 for the
+bunny); what remains is quadrature: 2 Gauss–Legendre nodes per projected edge and the bilinear
+``Y J`` table. On convex meshes: 3.5e-4 relative at 64² against converged differences; on
+bunny_small (self-occluding, 1000 faces) against the ray-cast derivative at 32 nodes: cosine
+0.9987–0.9989 and norm ratio 0.95–1.00 at 32² and 2 nodes, 1.1–1.8 % apart at 128² and 8 nodes.
 """
 
 from __future__ import annotations
@@ -80,18 +81,19 @@ from ._edgescan import (
     EdgeTable,
     _basis_weights,
     _cached_edge_table,
+    _check_slots,
     _compact,
     _compute,
+    _cumsum,
     _local_coords,
     _pack,
     _prepare,
     _project_sh,
     _resolve,
     _round_up,
-    _stage_occlusion,
+    _stage_counts,
     _stage_views,
     always,
-    edgescan_occlusion,
     staged,
 )
 
@@ -126,84 +128,20 @@ def _corner_basis(directions, shell, n, dtype):
         return jnp.asarray(_np_corner_basis(directions, shell, n), dtype)
 
 
-_FANS: dict = {}
-
-
-def _ring_fans(faces_np: np.ndarray, table: EdgeTable) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The faces around an edge's end points, other than its own two, as the rims of two open fans.
-
-    For edge (a, b) the faces around a are ``(a, u_i, u_{i+1})`` for consecutive entries of a's rim
-    ``u`` read around a from the vertex after b to the vertex before it (so the edge's own faces
-    (a, b, ·) and (a, ·, b) are left out), then the same around b starting after a, in one row.
-    Returns ``rim`` (E_pad, M) int32 vertex ids, ``at_b`` (E_pad, M) bool (the entry belongs to b's
-    fan) and ``face`` (E_pad, M − 1) bool, True where ``rim[i], rim[i + 1]`` bound a face with the
-    centre of entry i (False at the seam between the fans, on padding, which repeats the last entry,
-    and between two cycles of a vertex whose neighbourhood is not a single disc). This is the set of
-    faces touching a or b minus the edge's own two; each spoke centre → u_i serves two faces, so a
-    point needs two orientation tests per face instead of three (the bunny's padded rows: 47
-    instead of 66). Cached per topology.
-    """
-    key = (faces_np.shape, hash(faces_np.tobytes()))
-    if key in _FANS:
-        return _FANS[key]
-    if len(_FANS) >= 32:
-        _FANS.clear()
-    nxt: dict = {}  # (centre, u) -> the vertex after u around the centre, in the faces' winding
-    for i, j, k in faces_np.tolist():
-        nxt[(i, j)], nxt[(j, k)], nxt[(k, i)] = k, i, j
-    around: dict = {}
-    for c, u in nxt:
-        around.setdefault(c, []).append(u)
-
-    def fan(c, start):
-        """(rim, face) of c: from the vertex after ``start`` to the one before it, then any other
-        cycles around c (closed); face[i] says whether rim[i - 1], rim[i] bound a face."""
-        rim, face, seen = [], [], {start}
-        u = nxt[(c, start)]
-        while u != start and u not in seen:
-            seen.add(u)
-            face.append(len(rim) > 0)
-            rim.append(u)
-            u = nxt[(c, u)]
-        for s in around[c]:
-            if s in seen:
-                continue
-            u = s
-            face.append(False)
-            rim.append(u)
-            seen.add(u)
-            while (u := nxt[(c, u)]) != s:
-                face.append(True)
-                rim.append(u)
-                seen.add(u)
-            face.append(True)  # close the cycle: the face (c, last, s)
-            rim.append(s)
-        return rim, face
-
-    a, b = (np.asarray(x)[: table.num_edges].tolist() for x in (table.a, table.b))
-    rows = []
-    for x, y in zip(a, b, strict=True):
-        ra, fa = fan(x, y)
-        rb, fb = fan(y, x)
-        rows.append((ra + rb, fa + [False] + fb[1:] if rb else fa, len(ra)))
-    m = max(2, max(len(r) for r, _, _ in rows))
-    e_pad = int(table.a.shape[0])
-    rim = np.zeros((e_pad, m), np.int32)
-    at_b = np.zeros((e_pad, m), bool)
-    face = np.zeros((e_pad, m), bool)
-    for e, (r, f, na) in enumerate(rows):
-        if r:
-            rim[e, : len(r)], rim[e, len(r) :] = r, r[-1]
-            face[e, : len(f)] = f
-            at_b[e, na:] = True
-    _FANS[key] = (rim, at_b, face[:, 1:])
-    return _FANS[key]
-
-
 @lru_cache(maxsize=16)
 def _np_nodes(nodes):
     x, w = np.polynomial.legendre.leggauss(nodes)
     return 0.5 * (x + 1.0), 0.5 * w  # on [0, 1]
+
+
+def _cell(x, tan_a, n):
+    """Pixel index along one image axis of the image coordinate ``x`` (clipped to the image)."""
+    return jnp.clip(jnp.floor((x + tan_a) * (n / (2.0 * tan_a))), 0, n - 1).astype(jnp.int32)
+
+
+def _orient(ax, ay, bx, by, x, y):
+    """``(B − A) × (X − A)``: positive when X lies to the left of the line A → B."""
+    return (bx - ax) * (y - ay) - (by - ay) * (x - ax)
 
 
 # --------------------------------------------------------------------------------------------
@@ -221,7 +159,9 @@ def _local(vertices, faces, *, grid, shell):
 
 @jax.jit
 def _silhouette_mask(front, t1, t2):
-    return front[t1] != front[t2]  # (E_pad, G); padding edges have t1 = t2: never
+    # view-major (G, E_pad): the compacted pairs come out grouped by view; padding edges have
+    # t1 = t2 and are never silhouettes
+    return (front[t1] != front[t2]).T
 
 
 def edgescan_grad_slots(
@@ -234,13 +174,16 @@ def edgescan_grad_slots(
     edge_table: EdgeTable | None = None,
     directions: tuple[int, int] = (32, 32),
     nodes: int = 2,
-) -> tuple[int, int]:
-    """Static slot counts ``(pairs, nodes)`` for :func:`bsv_mesh_edgescan_diff`'s ``grad_slots``.
+) -> tuple[int, int, int, int, int]:
+    """Static sizes ``(pairs, nodes, pieces, window, long, longer)`` for
+    :func:`bsv_mesh_edgescan_diff`'s ``grad_slots``.
 
     ``pairs``: the (silhouette edge, view) pairs over all T·P views; ``nodes``: the Gauss–Legendre
-    nodes on them whose pixel beyond the edge is free in the occlusion image (the only ones whose
-    visibility is tested further; the bunny at shell 1.5 and 32² keeps 40 % of its nodes). Both
-    counted on the given (concrete) pose, times ``margin``, rounded up to a multiple of 32.
+    nodes on them that are visible (the only ones the linear part carries; the bunny at shell 1.5
+    and 32²: 20 % of its nodes); ``pieces``: the (pair, pixel) entries of the pixel lists (every
+    pixel of each projected edge's bounding box); ``window``: the longest pixel list; ``long`` and
+    ``longer``: the nodes whose pixel list is longer than 16 and 48 entries. Counted on the given
+    (concrete) pose, times ``margin``, rounded up to a multiple of 32 (the window: of 8).
     Silhouettes of closed meshes hold a small share of the edges per view (the bunny: 12 %).
     """
     if not (isinstance(margin, int | float) and margin >= 1.0):
@@ -250,45 +193,103 @@ def edgescan_grad_slots(
     _, _, _, front = _local(vertices, faces_j, grid=grid, shell=shell)
     count = int(jnp.sum(_silhouette_mask(front, table.t1, table.t2)))
     cap = int(table.a.shape[0]) * grid[0] * grid[1]
-    pairs = min(_round_up(max(1, count), _WORD), cap)
-    occ, _ = edgescan_occlusion(vertices, faces_j, grid, directions, shell, edge_table=table)
-    occ = jnp.swapaxes(occ.reshape(-1, *directions), -1, -2)  # column-major, as the pass keeps it
-    live = int(
-        _count_live(
+    # the counting passes run with sizes rounded up to powers of two, so that the poses of one
+    # mesh share their compilations (any size at least the count gives the same counts)
+    pairs = min(_pow2(count), _round_up(cap, _WORD))
+    kw = dict(grid=grid, directions=directions, shell=shell, slots=pairs, nodes=nodes)
+    n_pieces, longest = (int(x) for x in _count_pieces(vertices, faces_j, table, **kw))
+    counts = _counts_of(vertices, faces_j, table, grid, directions, shell)
+    live, n_long, n_longer = (
+        int(x)
+        for x in _count_live(
             vertices,
             faces_j,
             table,
-            occ,
-            grid=grid,
-            directions=directions,
-            shell=shell,
-            slots=pairs,
-            nodes=nodes,
+            counts,
+            **kw,
+            piece_slots=_pow2(n_pieces),
+            window=max(8, _pow2(longest)),
+            long_slots=(pairs * nodes, pairs * nodes),
         )
     )
+
+    def grow(x, m):
+        return _round_up(max(1, math.ceil(x * margin)), m)
+
     return (
-        min(_round_up(max(1, math.ceil(count * margin)), _WORD), cap),
-        min(_round_up(max(1, math.ceil(live * margin)), _WORD), cap * nodes),
+        min(grow(count, _WORD), cap),
+        min(grow(live, _WORD), cap * nodes),
+        grow(n_pieces, _WORD),
+        grow(longest, 8),
+        min(grow(n_long, _WORD), cap * nodes),
+        min(grow(n_longer, _WORD), cap * nodes),
     )
+
+
+def _pow2(x):
+    """The smallest power of two >= max(x, 32)."""
+    return 1 << max(5, (int(x) - 1).bit_length())
+
+
+def _counts_of(vertices, faces, table, grid, directions, shell):
+    """Layer counts (G, N_x, N_y) of one edge-scan pass (concrete pose)."""
+    vertices, _, table, grid, directions, shell, slots = _resolve(
+        vertices, faces, grid, directions, shell, table, None
+    )
+    diff, _, _, _ = _compute(vertices, faces, table, grid, directions, shell, slots)
+    return _stage_counts(diff)
 
 
 @partial(jax.jit, static_argnames=("grid", "directions", "shell", "slots", "nodes"))
-def _count_live(vertices, faces, table, occ, **kw):
-    """Nodes that pass the image test (one compiled call: eagerly, its many small steps each compile)."""
-    return jnp.sum(_pair_terms(vertices, faces, table, occ, **kw)[1])
+def _count_pieces(vertices, faces, table, **kw):
+    """(pair, pixel) entries and the longest pixel list, without forming either list."""
+    pair, filled, _, _ = _pairs(vertices, faces, table, **kw)
+    ny, nx = kw["directions"]
+    views = kw["grid"][0] * kw["grid"][1]
+    c0, c1, r0, r1 = _boxes(pair, filled, kw["directions"], kw["shell"])
+    n_pieces = jnp.sum(jnp.where(filled, (c1 - c0 + 1) * (r1 - r0 + 1), 0))
+    # occupancy per pixel: 2-D difference array of the boxes, prefix-summed along both axes
+    one = filled.astype(jnp.int32)
+    occ = jnp.zeros((views, ny + 1, nx + 1), jnp.int32)
+    for r, c, s in ((r0, c0, 1), (r0, c1 + 1, -1), (r1 + 1, c0, -1), (r1 + 1, c1 + 1, 1)):
+        occ = occ.at[pair["view"], r, c].add(s * one)
+    occ = jnp.cumsum(jnp.cumsum(occ, axis=1), axis=2)
+    return n_pieces, jnp.max(occ)
 
 
-def _check_grad_slots(grad_slots, nodes):
-    """``grad_slots`` as ``(pairs, nodes)`` ints (an int: pairs, with a node slot for every node)."""
+@partial(
+    jax.jit,
+    static_argnames=("grid", "directions", "shell", "slots", "nodes", "piece_slots", "window", "long_slots"),
+)
+def _count_live(vertices, faces, table, counts, **kw):
+    """Visible nodes and nodes with long pixel lists (one compiled call: eagerly, its many small
+    steps each compile)."""
+    _, chi, _, _, (_, n_long) = _visible_nodes(vertices, faces, table, counts, **kw)
+    return jnp.sum(chi), *n_long
+
+
+def _check_grad_slots(grad_slots, nodes, directions, views):
+    """``grad_slots`` as ``(pairs, nodes, pieces, window, long, longer)`` ints.
+
+    An int gives the pairs only, with a node slot for every node, a window of 256 and
+    ``4·pairs + 2·views·N_y·N_x`` pixel entries: the entries of a pair are the pixels of its
+    bounding box, ``(|Δcol| + 1)(|Δrow| + 1)``; short edges of fine meshes take 1–4, and the long
+    edges of a coarse silhouette cover about as many pixels as the image has, once or twice.
+    """
 
     def positive(x):
         return not isinstance(x, bool) and isinstance(x, int | np.integer) and x >= 1
 
     if positive(grad_slots):
-        return int(grad_slots), int(grad_slots) * int(nodes)
-    if isinstance(grad_slots, tuple | list) and len(grad_slots) == 2 and all(positive(x) for x in grad_slots):
-        return int(grad_slots[0]), int(grad_slots[1])
-    raise ValueError(f"grad_slots must be a positive int or a pair of them, got {grad_slots!r}")
+        every = int(grad_slots) * int(nodes)
+        pieces = 4 * int(grad_slots) + 2 * int(views) * int(directions[0]) * int(directions[1])
+        return int(grad_slots), every, pieces, 256, every, every
+    if isinstance(grad_slots, tuple | list) and len(grad_slots) == 6 and all(positive(x) for x in grad_slots):
+        return tuple(int(x) for x in grad_slots)
+    raise ValueError(
+        "grad_slots must be a positive int or six of them (pairs, nodes, pieces, window, long, longer), "
+        f"got {grad_slots!r}"
+    )
 
 
 def _default_grad_slots(table, grid):
@@ -297,23 +298,20 @@ def _default_grad_slots(table, grid):
 
 
 # --------------------------------------------------------------------------------------------
-# the tangent
+# node visibility: the winding number of the silhouette, exactly
 # --------------------------------------------------------------------------------------------
 
 
-def _pair_terms(vertices, faces, table, occ, *, grid, directions, shell, slots, nodes):
-    """Per (silhouette edge, view) slot: the image-space quantities, and the nodes whose pixel one
-    pixel beyond the edge is free in the occlusion image ``occ`` (G, N_x, N_y).
+def _pairs(vertices, faces, table, *, grid, directions, shell, slots, nodes):
+    """Per (silhouette edge, view) slot, grouped by view: the image-space quantities.
 
     Returns ``pair`` (a dict of (S,) arrays: edge, view, end points' vertex ids, image coordinates
-    and depths, the facing weight w, n₃, and the nodes' image coordinates (S, nodes)), ``chi``
-    (S, nodes) bool (False on empty slots), the silhouette pair count (), and the (vertex, view)
-    image coordinates ``px, py`` (V, G). Each step is a :func:`staged` computation.
+    and depths, the facing weight w, n₃, and the nodes' image coordinates (S, nodes)), ``filled``
+    (S,) bool, the silhouette pair count () and the (vertex, view) image coordinates ``px, py``
+    (V, G). Each step is a :func:`staged` computation.
     """
-    ny, nx = directions
     g = grid[0] * grid[1]
-    tan_a = 1.0 / math.sqrt(shell * shell - 1.0)
-    dx, dy = 2.0 * tan_a / nx, 2.0 * tan_a / ny
+    e_pad = table.a.shape[0]
     stage = partial(staged, always(vertices))
     px, py, qz, front = stage(partial(_local, grid=grid, shell=shell), vertices, faces)
     sil = stage(_silhouette_mask, front, table.t1, table.t2)
@@ -321,57 +319,217 @@ def _pair_terms(vertices, faces, table, occ, *, grid, directions, shell, slots, 
 
     def gather(pos, px, py, qz, front, a, b, t1):
         filled = pos >= 0
-        pos = jnp.where(filled, pos, (a.shape[0] - 1) * g)  # empty: view 0 of a padding edge
-        edge, view = pos // g, pos % g
+        pos = jnp.where(filled, pos, (g - 1) * e_pad + e_pad - 1)  # empty: a padding edge
+        view, edge = pos // e_pad, pos % e_pad
         va, vb = a[edge], b[edge]
         fa, fb = va * g + view, vb * g + view
         pxf, pyf, qzf = px.reshape(-1), py.reshape(-1), qz.reshape(-1)
         ax, ay, az = pxf[fa], pyf[fa], qzf[fa]
         bx, by, bz = pxf[fb], pyf[fb], qzf[fb]
         w = jnp.where(front.reshape(-1)[t1[edge] * g + view], 1.0, -1.0).astype(px.dtype)
-        return dict(edge=edge, view=view, va=va, vb=vb, ax=ax, ay=ay, az=az, bx=bx, by=by, bz=bz, w=w), filled
-
-    def image_test(p, filled, occ):
-        ax, ay, bx, by, w, view = (p[k] for k in ("ax", "ay", "bx", "by", "w", "view"))
         n3 = jnp.stack([ay - by, bx - ax, ax * by - ay * bx], axis=-1)  # (A, 1) × (B, 1)
-        # nodes along the image segment: image coordinates (S, nodes)
-        t_k = jnp.asarray(_np_nodes(nodes)[0], ax.dtype)
+        t_k = jnp.asarray(_np_nodes(nodes)[0], ax.dtype)  # nodes along the image segment (S, nodes)
         node_x = ax[:, None] + t_k * (bx - ax)[:, None]
         node_y = ay[:, None] + t_k * (by - ay)[:, None]
-        # visibility: the pixel one pixel beyond the node along the outward normal w·n₃_xy is free
-        # (u along x, v along y in pixel units; pixel corners at integers)
-        u, v = (node_x + tan_a) / dx, (node_y + tan_a) / dy
-        nu, nv = w * n3[:, 0] * dx, w * n3[:, 1] * dy  # the normal in pixel units
-        length = jnp.sqrt(nu * nu + nv * nv)
-        ok = length > 0.0
-        inv = jnp.where(ok, 1.0 / jnp.where(ok, length, 1.0), 0.0)  # double where: zero-length edges
-        jo = jnp.floor(u + (nu * inv)[:, None]).astype(jnp.int32)
-        io = jnp.floor(v + (nv * inv)[:, None]).astype(jnp.int32)
-        inside = (jo >= 0) & (jo < nx) & (io >= 0) & (io < ny)
-        flat = view[:, None] * (nx * ny) + jnp.clip(jo, 0, nx - 1) * ny + jnp.clip(io, 0, ny - 1)
-        chi = ~(occ.reshape(-1)[flat] & inside) & filled[:, None]  # occ is column-major (G, N_x, N_y)
-        return dict(p, n3=n3, node_x=node_x, node_y=node_y), chi
+        p = dict(edge=edge, view=view, va=va, vb=vb, ax=ax, ay=ay, az=az, bx=bx, by=by, bz=bz, w=w, n3=n3)
+        return dict(p, node_x=node_x, node_y=node_y), filled
 
     pair, filled = stage(gather, pos, px, py, qz, front, table.a, table.b, table.t1)
-    pair, chi = stage(image_test, pair, filled, occ)
-    return pair, chi, total, (px, py)
+    return pair, filled, total, (px, py)
 
 
-def _slot_terms(vertices, faces, table, fans, occ, *, grid, directions, shell, slots, node_slots, nodes):
-    """Primal per-node terms of the boundary integral (no derivative flows here).
+def _boxes(pair, filled, directions, shell):
+    """Pixel bounding box ``c0, c1, r0, r1`` (S,) of each projected edge (columns along x)."""
+    ny, nx = directions
+    tan_a = 1.0 / math.sqrt(shell * shell - 1.0)
+    ax, ay, bx, by = (pair[k] for k in ("ax", "ay", "bx", "by"))
+    c0, c1 = _cell(jnp.minimum(ax, bx), tan_a, nx), _cell(jnp.maximum(ax, bx), tan_a, nx)
+    r0, r1 = _cell(jnp.minimum(ay, by), tan_a, ny), _cell(jnp.maximum(ay, by), tan_a, ny)
+    return c0, c1, r0, r1
 
-    The nodes that pass the image test of :func:`_pair_terms` are compacted into ``node_slots``
-    entries, and only those are tested against the faces around the edge's end points. Returns
-    ``va, vb`` (N,) vertex ids, ``view`` (N,), ``normal`` (N, 3) = F n₃ (world), ``corner`` (N, 4)
-    flat corner indices, ``ca, cb`` (N, 4) splat weights of ``n₃·δq_a`` and ``n₃·δq_b`` (zero on empty
-    entries), the silhouette pair count () and the node count ().
+
+def _pixel_lists(pair, filled, *, directions, shell, views, piece_slots, window):
+    """The silhouette edges of each pixel: every (pair, pixel) of the edges' bounding boxes, sorted
+    by (view, pixel), as a table (Q + window, 6) of ``A_x, A_y, B_x, B_y, w, slot`` and per pixel its
+    ``start`` and length ``size`` ((G·N_y·N_x,) each, row-major pixels); and the overflow flag.
+
+    The entries are expanded in the order of the pairs (grouped by view) and sorted by one int32 key
+    (view, pixel, entry within the view): XLA:CPU sorts one operand about 4× faster than a key with
+    a payload. Keys that do not fit in 31 bits use the slower two-operand sort.
     """
     ny, nx = directions
-    g = grid[0] * grid[1]
+    q = piece_slots
+    c0, c1, r0, r1 = _boxes(pair, filled, directions, shell)
+    wid = c1 - c0 + 1
+    k = jnp.where(filled, wid * (r1 - r0 + 1), 0)
+    cum = _cumsum(k)
+    first = cum - k
+    total = cum[-1]
+    # entry i belongs to the last pair whose first entry is at or before i
+    mark = jnp.zeros(q, jnp.int32).at[first].add(1, mode="drop")
+    owner = jnp.clip(_cumsum(mark) - 1, 0, k.shape[0] - 1)
+    i = jnp.arange(q, dtype=jnp.int32)
+    valid = i < total
+    local = i - first[owner]
+    row = r0[owner] + local // wid[owner]
+    col = c0[owner] + local % wid[owner]
+    view = pair["view"][owner]
+    cells = views * ny * nx
+    key = jnp.where(valid, (view * ny + row) * nx + col, cells)
+    key_bits = int(cells).bit_length()
+    idx_bits = 31 - key_bits
+    if idx_bits >= 12:
+        per_view = jnp.zeros(views, jnp.int32).at[pair["view"]].add(k)
+        view_first = _cumsum(per_view) - per_view
+        idx = i - view_first[view]
+        packed = jnp.where(valid, (key << idx_bits) | idx, jnp.iinfo(jnp.int32).max)
+        s = jnp.sort(packed)
+        skey = s >> idx_bits
+        sview = jnp.minimum(skey // (ny * nx), views - 1)
+        sowner = owner[jnp.clip(view_first[sview] + (s & ((1 << idx_bits) - 1)), 0, q - 1)]
+        overflow = jnp.max(jnp.where(valid, idx, 0)) >= (1 << idx_bits)
+    else:
+        skey, sowner = lax.sort((key, owner), num_keys=1)
+        overflow = jnp.zeros((), bool)
+    slot_id = jnp.arange(k.shape[0]).astype(pair["ax"].dtype)
+    data = jnp.stack([pair["ax"], pair["ay"], pair["bx"], pair["by"], pair["w"], slot_id], axis=-1)
+    # ``window`` rows past the end, so that every node's window of the list is in bounds
+    table = data[jnp.concatenate([sowner, jnp.zeros(window, sowner.dtype)])]
+    size = jnp.zeros(cells + 1, jnp.int32).at[key].add(1)[:cells]
+    start = _cumsum(size) - size
+    return table, start, size, overflow | (total > q)
+
+
+_TIERS = (16, 32)  # pixel-list entries every node reads, then the nodes of longer lists; the rest
+# of the longest lists (over 48 entries) is read by their nodes alone
+
+
+def _crossings(padded, st, sz, sid, x, y, cx, cy, *, lo, width):
+    """``Σ w'·(sgn s'(q) − sgn s'(C))/2`` over the list entries ``lo … lo + width − 1`` of each
+    node's pixel that cross the segment C → q (and are not the node's own pair ``sid``): (M,)."""
+    cols = padded.shape[1]
+    zero = jnp.zeros((), st.dtype)
+    win = jax.vmap(lambda s0: lax.dynamic_slice(padded, (s0 + lo, zero), (width, cols)))(st)
+    wx0, wy0, wx1, wy1, ww, wid = (win[..., m] for m in range(6))
+    ok = (lo + jnp.arange(width, dtype=sz.dtype) < sz[:, None]) & (wid != sid[:, None].astype(x.dtype))
+    xq, yq, xc, yc = x[:, None], y[:, None], cx[:, None], cy[:, None]
+    s_c = _orient(wx0, wy0, wx1, wy1, xc, yc)
+    s_q = _orient(wx0, wy0, wx1, wy1, xq, yq)
+    d_a = _orient(xc, yc, xq, yq, wx0, wy0)
+    d_b = _orient(xc, yc, xq, yq, wx1, wy1)
+    cross = ok & (s_c * s_q < 0) & (d_a * d_b < 0)
+    return jnp.sum(jnp.where(cross, 0.5 * ww * (jnp.sign(s_q) - jnp.sign(s_c)), 0.0), axis=-1)
+
+
+def _winding_chi(pair, filled, counts, table, start, size, *, directions, shell, window, long_slots):
+    """Visibility χ (S, nodes) of each node: the silhouette bounds the occluded region there.
+
+    The forward pass's layer count at pixel centres is the winding number ``c`` of the projected
+    silhouette (module docstring of :mod:`jshadow.visibility._edgescan`); it changes by ``±w'``
+    exactly where a silhouette edge is crossed. A node q on edge e in pixel (i, j) gets its count
+    from the pixel centre C: ``c(q⁻) = c(C) + Σ w'·(sgn s'(q) − sgn s'(C))/2`` over the edges e' ≠ e
+    of the pixel's list that cross the segment C → q (``s'`` the side of e'), which lies inside the
+    pixel. Crossing e itself changes the count by ``−w·sgn s_e(C)``; q is on the boundary of the
+    occluded region iff one of the two counts is 0. Exact up to rounding (a pixel centre on an
+    edge), unlike any test on the sampled image.
+
+    Every node reads the first 16 entries of its pixel's list; the nodes of longer lists (the bunny:
+    23 % at 32²) are compacted into ``long_slots[0]`` slots and read the next 32, and those of lists
+    longer than 48 into ``long_slots[1]`` slots that read the rest, up to ``window``. Returns χ, the
+    longest list met and the node counts of the two tiers (overflow when they exceed the sizes).
+    """
+    ny, nx = directions
+    tan_a = 1.0 / math.sqrt(shell * shell - 1.0)
+    s_, k_ = pair["node_x"].shape
+    sid = jnp.broadcast_to(jnp.arange(s_, dtype=jnp.int32)[:, None], (s_, k_)).reshape(-1)
+    x, y = pair["node_x"].reshape(-1), pair["node_y"].reshape(-1)
+    view = pair["view"][sid]
+    col, row = _cell(x, tan_a, nx), _cell(y, tan_a, ny)
+    key = (view * ny + row) * nx + col
+    st, sz = start[key], size[key]
+    dtype = x.dtype
+    cx = (-tan_a + (col.astype(dtype) + 0.5) * (2.0 * tan_a / nx)).astype(dtype)
+    cy = (-tan_a + (row.astype(dtype) + 0.5) * (2.0 * tan_a / ny)).astype(dtype)
+    # every node reads the first tier; the nodes of longer lists are compacted for the next ones
+    lo = min(_TIERS[0], window)
+    part = _crossings(table, st, sz, sid, x, y, cx, cy, lo=0, width=lo)
+    n_tier = []
+    for width, slots in zip((_TIERS[1], window), long_slots, strict=True):
+        width = min(width, window - lo)
+        if width <= 0:
+            n_tier.append(jnp.zeros((), jnp.int32))
+            continue
+        pos, n = _compact(_pack(sz > lo), slots)
+        n_tier.append(n)
+        live, i = pos >= 0, jnp.maximum(pos, 0)
+        rest = _crossings(table, st[i], sz[i], sid[i], x[i], y[i], cx[i], cy[i], lo=lo, width=width)
+        part = part.at[i].add(jnp.where(live, rest, 0.0))
+        lo += width
+    c_near = counts[view, col, row] + part
+    ax, ay, bx, by, w = (pair[m][sid] for m in ("ax", "ay", "bx", "by", "w"))
+    c_far = c_near - w * jnp.sign(_orient(ax, ay, bx, by, cx, cy))
+    chi = ((c_near == 0) | (c_far == 0)) & filled[sid]
+    return chi.reshape(s_, k_), jnp.max(sz), tuple(n_tier)
+
+
+def _visible_nodes(
+    vertices, faces, table, counts, *, grid, directions, shell, slots, nodes, piece_slots, window, long_slots
+):
+    """``pair``, χ (S, nodes), the pair count (), overflow of the pixel lists () (staged steps)."""
+    views = grid[0] * grid[1]
+    pair, filled, total, _ = _pairs(
+        vertices, faces, table, grid=grid, directions=directions, shell=shell, slots=slots, nodes=nodes
+    )
+    stage = partial(staged, always(vertices))
+    lists = partial(
+        _pixel_lists, directions=directions, shell=shell, views=views, piece_slots=piece_slots, window=window
+    )
+    ptable, start, size, over = stage(lists, pair, filled)
+    chi_fn = partial(_winding_chi, directions=directions, shell=shell, window=window, long_slots=long_slots)
+    chi, longest, n_long = stage(chi_fn, pair, filled, counts.astype(pair["ax"].dtype), ptable, start, size)
+    tiers = (n_long[0] > long_slots[0]) | (n_long[1] > long_slots[1])
+    return pair, chi, total, over | (longest > window) | tiers, (longest, n_long)
+
+
+def _slot_terms(
+    vertices,
+    faces,
+    table,
+    counts,
+    *,
+    grid,
+    directions,
+    shell,
+    slots,
+    node_slots,
+    nodes,
+    piece_slots,
+    window,
+    long_slots,
+):
+    """Primal per-node terms of the boundary integral (no derivative flows here).
+
+    The visible nodes (:func:`_winding_chi`) are compacted into ``node_slots`` entries. Returns
+    ``va, vb`` (N,) vertex ids, ``view`` (N,), ``normal`` (N, 3) = F n₃ (world), ``corner`` (N, 4)
+    flat corner indices, ``ca, cb`` (N, 4) splat weights of ``n₃·δq_a`` and ``n₃·δq_b`` (zero on empty
+    entries), the silhouette pair count (), the visible node count () and the pixel lists' overflow ().
+    """
+    ny, nx = directions
     tan_a = 1.0 / math.sqrt(shell * shell - 1.0)
     dx, dy = 2.0 * tan_a / nx, 2.0 * tan_a / ny
-    pair, chi, total, (px, py) = _pair_terms(
-        vertices, faces, table, occ, grid=grid, directions=directions, shell=shell, slots=slots, nodes=nodes
+    pair, chi, total, over, _ = _visible_nodes(
+        vertices,
+        faces,
+        table,
+        counts,
+        grid=grid,
+        directions=directions,
+        shell=shell,
+        slots=slots,
+        nodes=nodes,
+        piece_slots=piece_slots,
+        window=window,
+        long_slots=long_slots,
     )
     stage = partial(staged, always(vertices))
     npos, count = stage(lambda c: _compact(_pack(c.reshape(-1)), node_slots), chi)
@@ -387,30 +545,9 @@ def _slot_terms(vertices, faces, table, fans, occ, *, grid, directions, shell, s
 
     node = stage(gather, npos, pair)
 
-    # ... and no face around the edge's end points covers the node (the contour of a fine mesh
-    # zigzags: edges folded back under their neighbours by less than a pixel, which the image
-    # cannot see). All vertices lie in front of p, so a face covers a direction iff the node lies
-    # inside its projected triangle. The faces around each end point c form a fan
-    # (c, u_i, u_{i+1}) (_ring_fans): the orientation of the node against a spoke c -> u_i serves
-    # two faces.
-    def fan_gather(edge, view, px, py, rim, at_b, face_ok):
-        ids = rim[edge] * g + view[:, None]  # (N, M)
-        return px.reshape(-1)[ids], py.reshape(-1)[ids], at_b[edge], face_ok[edge]
-
-    fans = (jnp.asarray(x) for x in fans)
-    ux, uy, at_b, face_ok = stage(fan_gather, node["edge"], node["view"], px, py, *fans)
-
-    def finish(p, ux, uy, at_b, face_ok):
-        ax, ay, bx, by, node_x, node_y = (p[k] for k in ("ax", "ay", "bx", "by", "node_x", "node_y"))
-        cx, cy = jnp.where(at_b, bx[:, None], ax[:, None]), jnp.where(at_b, by[:, None], ay[:, None])
-        spoke = (ux - cx) * (node_y[:, None] - cy) - (uy - cy) * (node_x[:, None] - cx)  # (N, M)
-        ex, ey = ux[:, 1:] - ux[:, :-1], uy[:, 1:] - uy[:, :-1]
-        rim_side = ex * (node_y[:, None] - uy[:, :-1]) - ey * (node_x[:, None] - ux[:, :-1])
-        s0, s1, s2 = spoke[:, :-1], rim_side, -spoke[:, 1:]
-        covered = ((s0 > 0) & (s1 > 0) & (s2 > 0)) | ((s0 < 0) & (s1 < 0) & (s2 < 0))
-        chi = p["live"] & ~jnp.any(covered & face_ok, axis=-1)
-
+    def finish(p):
         # bilinear splat onto the corner grid (G, N_y + 1, N_x + 1)
+        node_x, node_y = p["node_x"], p["node_y"]
         u, v = (node_x + tan_a) / dx, (node_y + tan_a) / dy
         j0 = jnp.clip(jnp.floor(u), 0, nx - 1)
         i0 = jnp.clip(jnp.floor(v), 0, ny - 1)
@@ -420,15 +557,15 @@ def _slot_terms(vertices, faces, table, fans, occ, *, grid, directions, shell, s
         corner = jnp.stack([base, base + 1, base + nx + 1, base + nx + 2], axis=-1)  # (N, 4)
         bil = jnp.stack([(1 - fu) * (1 - fv), fu * (1 - fv), (1 - fu) * fv, fu * fv], axis=-1)
         t_k = p["t_k"]
-        k = (p["w"] * p["w_k"] * chi.astype(ax.dtype))[:, None] * bil  # (N, 4)
+        k = (p["w"] * p["w_k"] * p["live"].astype(node_x.dtype))[:, None] * bil  # (N, 4)
         ca = k * ((1.0 - t_k) / p["az"])[:, None]
         cb = k * (t_k / p["bz"])[:, None]
-        _, frames = bsv_sample_points(jnp.zeros(3, ax.dtype), jnp.ones((), ax.dtype), grid, shell)
+        _, frames = bsv_sample_points(jnp.zeros(3, node_x.dtype), jnp.ones((), node_x.dtype), grid, shell)
         frames = frames.reshape(-1, 3, 3)
         normal = jnp.einsum("sij,sj->si", frames[p["view"]], p["n3"])  # F n₃: n₃·Fᵀδ = (F n₃)·δ
         return p["va"], p["vb"], p["view"], normal, corner, ca, cb
 
-    return (*stage(finish, node, ux, uy, at_b, face_ok), total, count)
+    return (*stage(finish, node), total, count, over)
 
 
 def _apply(terms, corner_basis, dvertices, dpoints, *, views):
@@ -458,7 +595,7 @@ def bsv_mesh_edgescan_diff(
     *,
     edge_table: EdgeTable | None = None,
     slots: tuple[int, int, int, int] | None = None,
-    grad_slots: int | tuple[int, int] | None = None,
+    grad_slots: int | tuple[int, ...] | None = None,
     nodes: int = 2,
 ) -> Float[Array, "T P n2"]:
     """Edge-scan BSV coefficients (T, P, n²) with the silhouette derivative (module docstring).
@@ -470,17 +607,22 @@ def bsv_mesh_edgescan_diff(
     Args:
         vertices: (V, 3) float, world units. faces: (F, 3) int, concrete, closed, consistently
             wound, edge-manifold (as for the edge-scan).
-        n, grid, directions, shell, edge_table, slots: as in :func:`bsv_mesh_edgescan`.
-        grad_slots: static sizes ``(pairs, nodes)`` of the derivative: (silhouette edge, view)
-            slots and the nodes on them that pass the image test, from
-            :func:`edgescan_grad_slots` on the rest pose; an int gives the pairs only (every node
-            then keeps a slot: never overflows, slower); None: measured on ``vertices`` when they
-            are concrete, else 30 % of all (edge, view) pairs. An overflow raises at run time.
+        n, grid, directions, shell, edge_table, slots: as in :func:`bsv_mesh_edgescan`; under a
+            trace, a pose that overflows ``slots`` reruns with 4× them (the other branch of a
+            conditional; the same quadrature), and only an overflow of those raises.
+        grad_slots: static sizes ``(pairs, nodes, pieces, window, long, longer)`` of the
+            derivative (:func:`edgescan_grad_slots` on the rest pose): (silhouette edge, view)
+            slots, visible nodes, pixel-list entries, the longest list and the nodes in the second
+            and third tier of list reading; an int gives the pairs only (every node keeps a slot,
+            generous pixel lists, slower); None: 30 % of all (edge, view) pairs (a derivative
+            sees traced vertices: measure a concrete pose with :func:`edgescan_grad_slots` for
+            speed). An overflow raises at run time.
         nodes: Gauss–Legendre nodes per projected edge (2: exact for the bilinear part on edges of
             constant visibility; most projected edges are shorter than a pixel).
 
-    Limitations: see the module docstring (χ from the image, bilinear Y·J, one-sided derivative
-    at visual events). The ``center`` and ``radius`` of the BSV are not returned here; take them
+    Limitations: see the module docstring (2 nodes per projected edge, bilinear Y·J, one-sided
+    derivative at visual events; a node within float rounding of another edge may get the wrong
+    χ). The ``center`` and ``radius`` of the BSV are not returned here; take them
     from :func:`jshadow.geometry.bounding_sphere`, which is differentiable.
     """
     if not (isinstance(n, int | np.integer) and n >= 1):
@@ -493,34 +635,45 @@ def bsv_mesh_edgescan_diff(
     vertices, _, table, grid, directions, shell, slots = _resolve(
         vertices, faces_np, grid, directions, shell, edge_table, slots
     )
-    if grad_slots is None:
-        if isinstance(vertices, jax.core.Tracer):
-            grad_slots = _default_grad_slots(table, grid)
-        else:
-            grad_slots = edgescan_grad_slots(
-                vertices,
-                faces_np,
-                grid,
-                shell,
-                margin=1.25,
-                edge_table=table,
-                directions=directions,
-                nodes=nodes,
-            )
-    pair_slots, node_slots = _check_grad_slots(grad_slots, nodes)
     cap = int(table.a.shape[0]) * grid[0] * grid[1]
-    pair_slots = min(_round_up(pair_slots, _WORD), cap)
-    node_slots = min(_round_up(node_slots, _WORD), pair_slots * int(nodes))
+
+    def sizes(grad_slots):
+        """The static sizes, rounded; generous defaults for None."""
+        if grad_slots is None:
+            # (a derivative always sees traced vertices, so there is no concrete pose to measure)
+            grad_slots = _default_grad_slots(table, grid)
+        pairs, node_slots, pieces, window, *long = _check_grad_slots(
+            grad_slots, nodes, directions, grid[0] * grid[1]
+        )
+        pairs = min(_round_up(pairs, _WORD), cap)
+        every = pairs * int(nodes)
+        node_slots = min(_round_up(node_slots, _WORD), every)
+        long = tuple(min(_round_up(x, _WORD), every) for x in long)
+        return pairs, node_slots, _round_up(pieces, _WORD), window, long
+
+    pair_slots, node_slots, piece_slots, window, long_slots = sizes(grad_slots)
     n, nodes = int(n), int(nodes)
     views = grid[0] * grid[1]
     basis_w = _basis_weights(directions, shell, n, vertices.dtype)
-    fans = _ring_fans(faces_np, table)
+
+    # Traced, a pose may need more edge-scan slots than the measured ones: that call then reruns
+    # with 4× the slots (and the full column span) in the other branch of a conditional, the same
+    # quadrature; only an overflow of those raises.
+    cap, width = int(table.a.shape[0]) * grid[0] * grid[1], directions[1]
+    larger = _check_slots((4 * slots[0], 4 * slots[1], 4 * slots[2], width), cap, width)
 
     def forward(x):
-        """Coefficients (G, n²) and occlusion images (G, N_x, N_y) of one edge-scan pass."""
-        diff, _, _, _ = _compute(x, faces_np, table, grid, directions, shell, slots)
-        occ = _stage_occlusion(diff)
-        return _project_sh(occ, basis_w, n), occ
+        """Coefficients (G, n²) and layer counts (G, N_x, N_y) of one edge-scan pass."""
+        if isinstance(x, jax.core.Tracer):
+            diff, overflow, _, _ = _compute(x, faces_np, table, grid, directions, shell, slots, check=False)
+            rerun = partial(
+                _compute, faces=faces_np, table=table, grid=grid, directions=directions, shell=shell
+            )
+            diff = lax.cond(overflow, lambda v: rerun(v, slots=larger)[0], lambda v: diff, x)
+        else:
+            diff, _, _, _ = _compute(x, faces_np, table, grid, directions, shell, slots)
+        counts = _stage_counts(diff)
+        return _project_sh(counts != 0, basis_w, n), counts
 
     @jax.custom_jvp
     def bsv(x):
@@ -530,21 +683,23 @@ def bsv_mesh_edgescan_diff(
     def bsv_jvp(primals, tangents):
         (x,), (dx,) = primals, tangents
         x0 = lax.stop_gradient(x)
-        out, occ = forward(x0)
-        *terms, total, count = _slot_terms(
+        out, counts = forward(x0)
+        *terms, total, count, over = _slot_terms(
             x0,
             faces_np,
             table,
-            fans,
-            occ,
+            counts,
             grid=grid,
             directions=directions,
             shell=shell,
             slots=pair_slots,
             node_slots=node_slots,
             nodes=nodes,
+            piece_slots=piece_slots,
+            window=window,
+            long_slots=long_slots,
         )
-        overflow = (total > pair_slots) | (count > node_slots)
+        overflow = (total > pair_slots) | (count > node_slots) | over
         out = eqx.error_if(out, overflow, _GRAD_OVERFLOW)
         # the tangent carries the check too: under jax.jit(jax.grad(...)) the primal is dead code
         # and its check would be dropped with it, leaving a silently incomplete gradient
