@@ -355,7 +355,10 @@ def _pixel_lists(pair, filled, *, directions, shell, views, piece_slots, window)
 
     The entries are expanded in the order of the pairs (grouped by view) and sorted by one int32 key
     (view, pixel, entry within the view): XLA:CPU sorts one operand about 4× faster than a key with
-    a payload. Keys that do not fit in 31 bits use the slower two-operand sort.
+    a payload. The (view, pixel) part takes ``b = ⌈log₂(G·N_y·N_x + 1)⌉`` bits and the entry index
+    the other ``31 − b`` (the default 12×20 views at 32²: 8192 entries per view); a view with more
+    entries sets the overflow flag. When fewer than 12 bits would remain, the slower two-operand
+    sort is used instead.
     """
     ny, nx = directions
     q = piece_slots
