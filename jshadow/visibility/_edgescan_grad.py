@@ -638,23 +638,17 @@ def bsv_mesh_edgescan_diff(
     vertices, _, table, grid, directions, shell, slots = _resolve(
         vertices, faces_np, grid, directions, shell, edge_table, slots
     )
-    cap = int(table.a.shape[0]) * grid[0] * grid[1]
-
-    def sizes(grad_slots):
-        """The static sizes, rounded; generous defaults for None."""
-        if grad_slots is None:
-            # (a derivative always sees traced vertices, so there is no concrete pose to measure)
-            grad_slots = _default_grad_slots(table, grid)
-        pairs, node_slots, pieces, window, *long = _check_grad_slots(
-            grad_slots, nodes, directions, grid[0] * grid[1]
-        )
-        pairs = min(_round_up(pairs, _WORD), cap)
-        every = pairs * int(nodes)
-        node_slots = min(_round_up(node_slots, _WORD), every)
-        long = tuple(min(_round_up(x, _WORD), every) for x in long)
-        return pairs, node_slots, _round_up(pieces, _WORD), window, long
-
-    pair_slots, node_slots, piece_slots, window, long_slots = sizes(grad_slots)
+    cap, width = int(table.a.shape[0]) * grid[0] * grid[1], directions[1]
+    if grad_slots is None:  # a derivative always sees traced vertices: there is no pose to measure
+        grad_slots = _default_grad_slots(table, grid)
+    pair_slots, node_slots, piece_slots, window, *long_slots = _check_grad_slots(
+        grad_slots, nodes, directions, grid[0] * grid[1]
+    )
+    pair_slots = min(_round_up(pair_slots, _WORD), cap)
+    every = pair_slots * int(nodes)
+    node_slots = min(_round_up(node_slots, _WORD), every)
+    piece_slots = _round_up(piece_slots, _WORD)
+    long_slots = tuple(min(_round_up(x, _WORD), every) for x in long_slots)
     n, nodes = int(n), int(nodes)
     views = grid[0] * grid[1]
     basis_w = _basis_weights(directions, shell, n, vertices.dtype)
@@ -662,7 +656,6 @@ def bsv_mesh_edgescan_diff(
     # Traced, a pose may need more edge-scan slots than the measured ones: that call then reruns
     # with 4× the slots (and the full column span) in the other branch of a conditional, the same
     # quadrature; only an overflow of those raises.
-    cap, width = int(table.a.shape[0]) * grid[0] * grid[1], directions[1]
     larger = _check_slots((4 * slots[0], 4 * slots[1], 4 * slots[2], width), cap, width)
 
     def forward(x):
