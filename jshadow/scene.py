@@ -155,8 +155,8 @@ def _differentiable_coeffs(occ: MeshOccluder, v, faces: np.ndarray | None, m, kw
                 "method.bsv_gradient = 'image' needs the edge-scan sampler, i.e. a closed, consistently "
                 "wound manifold mesh; this occluder's mesh is not (use bsv_gradient = 'raycast')"
             )
-        # a concrete pose is never differentiated (a derivative traces it): measure only when traced
-        grad_slots = _image_grad_slots(occ, faces, m) if isinstance(v, jax.core.Tracer) else None
+        # the derivative's sizes are measured when a derivative is traced, not by a forward pass
+        grad_slots = _image_grad_slots(occ, faces, m, lazy=True)
         return bsv_mesh_edgescan_diff(
             v, faces, slots=_edgescan_slots(occ, faces, m), grad_slots=grad_slots, **kw
         )
@@ -228,32 +228,44 @@ def _concrete(x):
 _SLOTS: dict = {}
 
 
-def _cached_slots(kind: str, occ: MeshOccluder, faces: np.ndarray, m, measure, merge, none):
-    """Slot sizes measured by ``measure(unit)`` on the occluder's concrete rest pose, cached per shape.
+def _cached_slots(kind: str, occ: MeshOccluder, faces: np.ndarray, m, measure, merge, none, *, lazy=False):
+    """Slot sizes measured by ``measure(poses)`` on the occluder's concrete poses (:func:`_poses`),
+    cached per rest shape.
 
     Each topology and configuration also keeps ``merge`` (the largest) of every shape measured with
     it, which a call whose rest pose is traced (fitting per-vertex offsets) reuses; ``none`` when no
-    concrete pose of this topology has been seen.
+    concrete pose of this topology has been seen. With ``lazy``, a shape not measured yet gives a
+    zero-argument function that measures (eagerly, outside any trace) when called, for sizes that
+    only a derivative needs.
     """
     topo = (kind, faces.shape, hash(faces.tobytes()), m.bsv_grid, m.directions, m.shell)
     unit = _concrete(occ.unit_vertices)
     if unit is None:
         return _SLOTS.get(topo, none)
     key = (*topo, hash(unit.tobytes()))
-    if key not in _SLOTS:
-        with jax.ensure_compile_time_eval():
-            _SLOTS[key] = measure(unit)
-        _SLOTS[topo] = _SLOTS[key] if topo not in _SLOTS else merge(_SLOTS[topo], _SLOTS[key])
-    return _SLOTS[key]
+    if key in _SLOTS:
+        return _SLOTS[key]
+    poses = _poses(occ, unit)
+
+    def run():
+        if key not in _SLOTS:
+            with jax.core.eval_context():
+                _SLOTS[key] = measure(poses)
+            _SLOTS[topo] = _SLOTS[key] if topo not in _SLOTS else merge(_SLOTS[topo], _SLOTS[key])
+        return _SLOTS[key]
+
+    return run if lazy else run()
 
 
-def _poses(occ: MeshOccluder, unit: np.ndarray) -> list:
-    """The rest pose ``unit`` and five concrete poses of the occluder's animation (t = 0 … 1)."""
+def _poses(occ: MeshOccluder, unit: np.ndarray) -> list[np.ndarray]:
+    """The rest pose ``unit`` and, if the occluder is concrete (no traced deformation parameter),
+    five poses of its animation (t = 0 … 1), as numpy arrays."""
     poses = [unit]
-    if occ.deform is not None:
+    if occ.deform is None or any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(occ)):
+        return poses
+    with jax.core.eval_context():  # concrete also while a caller is being traced
         for t in np.linspace(0.0, 1.0, 5):
-            v = _concrete(_vertices_at(occ, jnp.asarray(t, occ.unit_vertices.dtype)))
-            poses += [] if v is None else [v]
+            poses.append(np.asarray(_vertices_at(occ, jnp.asarray(t, occ.unit_vertices.dtype))))
     return poses
 
 
@@ -262,11 +274,10 @@ def _slots(occ: MeshOccluder, faces: np.ndarray, m) -> int | None:
     the rest pose and five poses of the animation (:func:`_cached_slots`; an overflow raises when the
     derivative runs); None (every edge: never overflows, slower) if unknown."""
 
-    def measure(unit):
-        # (np.asarray first: np.max of a jax.Array calls its .max(), which a jit trace would stage)
+    def measure(poses):
         most = max(
             int(np.asarray(bsv_silhouette_counts(v, faces, grid=m.bsv_grid, shell=m.shell)).max())
-            for v in _poses(occ, unit)
+            for v in poses
         )
         return int(min(int(1.5 * most) + 8, 3 * faces.shape[0] // 2))
 
@@ -284,25 +295,27 @@ def _edgescan_slots(occ: MeshOccluder, faces: np.ndarray, m):
     on concrete vertices; under a trace the raycast forward falls back to rays
     (:func:`_differentiable_coeffs`) and the image-mode one reruns with 4× the slots."""
 
-    def measure(unit):
-        es = [edgescan_slots(v, faces, m.bsv_grid, m.directions, m.shell) for v in _poses(occ, unit)]
+    def measure(poses):
+        es = [edgescan_slots(v, faces, m.bsv_grid, m.directions, m.shell) for v in poses]
         return tuple(max(x) for x in zip(*es, strict=True))
 
     return _cached_slots("edgescan", occ, faces, m, measure, _merge_max, None)
 
 
-def _image_grad_slots(occ: MeshOccluder, faces: np.ndarray, m):
+def _image_grad_slots(occ: MeshOccluder, faces: np.ndarray, m, lazy: bool = False):
     """Derivative sizes for ``bsv_gradient = "image"`` (:func:`jshadow.visibility.edgescan_grad_slots`,
     1.5 margin): the largest over the rest pose and five poses of the animation where they are
     concrete (the images are scale- and translation-invariant; under a trace an overflow raises),
-    see :func:`_cached_slots`; None — generous defaults, slower — if unknown."""
+    see :func:`_cached_slots`; None — generous defaults, slower — if unknown. With ``lazy``, sizes
+    not measured yet come as a function that measures them, which the derivative rule calls: a
+    forward pass (``jax.jit(render)``) then never compiles the counting passes."""
 
-    def measure(unit):
+    def measure(poses):
         grid, shell, directions = m.bsv_grid, m.shell, m.directions
-        gs = [edgescan_grad_slots(v, faces, grid, shell, directions=directions) for v in _poses(occ, unit)]
+        gs = [edgescan_grad_slots(v, faces, grid, shell, directions=directions) for v in poses]
         return tuple(max(x) for x in zip(*gs, strict=True))
 
-    return _cached_slots("image", occ, faces, m, measure, _merge_max, None)
+    return _cached_slots("image", occ, faces, m, measure, _merge_max, None, lazy=lazy)
 
 
 def occluder_visibilities(

@@ -1,10 +1,11 @@
 """The edge-scan BSV's image-plane vertex derivative (``bsv_gradient = "image"``).
 
 Checked in float64 against central differences of the converged forward pass of test_bsv_grad.py
-(exact piecewise integration, never the sampled images), against the ray-cast derivative on a
-finely tessellated self-occluding mesh (where the image visibility is biased: the test pins the
-measured bias), for the transpose relation between jvp and grad, exact invariances, NaN-freedom
-at a zero-length edge, and through a full render.
+(exact piecewise integration, never the sampled images), against the ray-cast derivative on
+self-occluding meshes (a torus; the finely tessellated bunny_small, whose contour zigzags below the
+pixel size), node visibility against a dense winding-number reference, the transpose relation
+between jvp and grad, exact invariances, NaN-freedom at a zero-length edge, static sizes measured
+only when a derivative is traced, and their overflow.
 """
 
 import math
@@ -248,6 +249,32 @@ def test_traced_overflow_of_gradient_slots_raises():
     with pytest.raises(Exception, match="gradient slots overflowed"):
         jax.block_until_ready(jax.grad(loss)(x))
     assert math.isfinite(float(loss(x)))  # the primal alone does not need the slots
+
+
+def test_callable_grad_slots_are_measured_when_a_derivative_is_traced():
+    # grad_slots may be a function: a forward pass never calls it; a derivative calls it (outside
+    # the trace) whether it is jit of grad or grad of jit, with the same result
+    from jshadow.visibility import edgescan_grad_slots
+
+    x, f = _ico(1)
+    x = jnp.asarray(x, jnp.float32)
+    grid, res = (2, 3), (8, 8)
+    calls = []
+
+    def measure():
+        calls.append(1)
+        return edgescan_grad_slots(np.asarray(x), f, grid, SHELL, directions=res)
+
+    def loss(v):
+        return jnp.sum(bsv_mesh_edgescan_diff(v, f, 2, grid, res, SHELL, grad_slots=measure) ** 2)
+
+    jax.block_until_ready(jax.jit(loss)(x))
+    assert not calls
+    a = np.asarray(jax.jit(jax.grad(loss))(x))
+    assert len(calls) == 1 and np.abs(a).max() > 0
+    b = np.asarray(jax.grad(jax.jit(loss))(x))
+    assert len(calls) == 2
+    np.testing.assert_allclose(b, a, rtol=1e-5, atol=1e-6 * np.abs(a).max())
 
 
 def test_node_compaction_keeps_the_gradient_and_overflow_raises():

@@ -82,16 +82,18 @@ class StretchY(eqx.Module):
         return x * jnp.asarray([1.0, 1.0 + self.a, 1.0])
 
 
-@pytest.mark.parametrize("setting", ["paper", "default", "image"])
+@pytest.mark.parametrize("setting", ["paper", "raycast", "image"])
 def test_stretch_gradient_comes_from_the_silhouette_and_matches_finite_differences(setting):
     # Stretching changes the BSV itself: without the silhouette term the BSV's derivative would be
     # zero (binary visibility). Finite differences use a finer direction grid. a0 = 0.2, not 0: at
     # a = 0 every icosphere vertex ties for the bounding radius, which has a kink there (measured:
     # one-sided derivatives differ by ~75 %), and central differences would average the two sides.
-    # On the default 1.5 r shell the silhouette integral needs more directions to converge (16²:
-    # 10 % low), so that setting's gradient is taken at 48²; its finite differences are noisy at 48²
-    # (binary visibility: ±15 % at h = 0.05), so they use 128² rays (measured: 0.9 % from the
-    # gradient; brute force: the derivative is that of the exact integral, whichever quadrature).
+    # On the default 1.5 r shell the ray-cast silhouette integral needs more directions to converge
+    # (16²: 10 % low), so that setting's gradient is taken at 48²; the image-plane one converges
+    # sooner (measured 0.4 / 1.2 / 0.6 / 0.7 % from the differences at 16² / 24² / 32² / 48²) and is
+    # taken at 16². Finite differences are noisy at 48² (binary visibility: ±15 % at h = 0.05), so
+    # they use 128² rays (brute force: the derivative is that of the exact integral, whichever
+    # quadrature).
     def loss_with(method):
         def loss(a):
             s = scene_with(StretchY(a))
@@ -102,9 +104,9 @@ def test_stretch_gradient_comes_from_the_silhouette_and_matches_finite_differenc
 
     if setting == "paper":
         method, fine = METHOD, Method.paper(bsv_grid=(8, 12), directions=(48, 48))
-    else:  # "image": the same silhouette term with visibility from the edge-scan's images (convex mesh)
-        gradient = "image" if setting == "image" else "raycast"
-        method = Method(bsv_grid=(8, 12), directions=(48, 48), bsv_gradient=gradient)
+    else:  # the 1.5 r shell: visibility of silhouette nodes by rays, or in the edge-scan's image plane
+        gradient, d = ("image", 16) if setting == "image" else ("raycast", 48)
+        method = Method(bsv_grid=(8, 12), directions=(d, d), bsv_gradient=gradient)
         fine = Method(bsv_grid=(8, 12), directions=(128, 128), bsv_method="brute")
     a0, h = jnp.float32(0.2), 0.05
     g = float(jax.jit(jax.grad(loss_with(method)))(a0))
@@ -138,19 +140,40 @@ def test_jit_of_grad_equals_grad_and_traced_faces_raise():
         jax.jit(jax.grad(traced))(a0)
 
 
+def test_eager_image_plane_gradient_equals_the_jitted_one():
+    # the default gradient (image plane): its static sizes are measured when the derivative is
+    # traced, from concrete poses taken beforehand, so the eager trace (whose deformation parameter
+    # is a tracer) and jit of grad agree
+    method = Method(bsv_grid=(3, 4), directions=(8, 8))
+
+    def loss(a):
+        s = dataclasses.replace(scene_with(StretchY(a)), method=method)
+        b = mesh_bsv(s.occluders[0], 0.0, s)
+        return jnp.sum(b.coeffs * jnp.arange(b.coeffs.shape[-1], dtype=b.coeffs.dtype))
+
+    a0 = jnp.float32(0.2)
+    want = float(jax.grad(loss)(a0))
+    assert abs(want) > 0.1
+    np.testing.assert_allclose(float(jax.jit(jax.grad(loss))(a0)), want, rtol=1e-4)
+
+
 def test_jit_of_an_edgescan_render_equals_the_eager_render():
     # Shell 1.5 and a closed mesh: the BSV comes from the edge-scan (eagerly, and in the Renderer).
     # Under jit the differentiable forward (raycast gradient) once fell back to brute-force ray
     # casting, another quadrature of the same integral (0.6 % apart here, and 20x slower for the
     # bunny); it now runs the same edge-scan, with slots measured on concrete poses of the animation.
+    from jshadow import scene as scene_module
     from jshadow.scene import _edgescan_slots
     from jshadow.visibility._edgescan import _traced_default_slots
 
-    method = Method(bsv_grid=(8, 12), directions=(16, 16))  # raycast gradient, shell 1.5
+    method = Method(bsv_grid=(8, 12), directions=(16, 16))  # shell 1.5, the image-plane gradient
     s = dataclasses.replace(scene_with(StretchY(jnp.float32(0.2))), method=method)
     eager = np.asarray(render(s).irradiance)
+    image_sizes = {k for k in scene_module._SLOTS if k[0] == "image"}
     jitted = np.asarray(jax.jit(lambda: render(s).irradiance)())
     assert np.abs(jitted - eager).max() <= 1e-5 * np.abs(eager).max()
+    # a forward pass does not measure the derivative's sizes (only a traced derivative does)
+    assert {k for k in scene_module._SLOTS if k[0] == "image"} == image_sizes
     occ, faces = s.occluders[0], np.asarray(FACES)
     measured = _edgescan_slots(occ, faces, method)
     assert measured is not None and measured[0] < _traced_default_slots(faces.shape[0], (8, 12), (16, 16))[0]

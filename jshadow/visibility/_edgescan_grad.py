@@ -64,6 +64,7 @@ bunny_small (self-occluding, 1000 faces) against the ray-cast derivative at 32 n
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from functools import lru_cache, partial
 
 import equinox as eqx
@@ -290,6 +291,13 @@ def _check_grad_slots(grad_slots, nodes, directions, views):
         "grad_slots must be a positive int or six of them (pairs, nodes, pieces, window, long, longer), "
         f"got {grad_slots!r}"
     )
+
+
+def _measured(measure):
+    """``measure()`` evaluated eagerly (outside any trace), also inside a derivative rule being traced;
+    it must close over concrete values only."""
+    with jax.core.eval_context():
+        return measure()
 
 
 def _default_grad_slots(table, grid):
@@ -571,6 +579,24 @@ def _slot_terms(
     return (*stage(finish, node), total, count, over)
 
 
+# one compiled call for a concrete pose (an eager jax.grad / jax.jvp): op by op, its many small
+# steps each compile (a 12-view icosphere's eager derivative took 22 s); traced, it is inlined
+_slot_terms_jit = jax.jit(
+    _slot_terms,
+    static_argnames=(
+        "grid",
+        "directions",
+        "shell",
+        "slots",
+        "node_slots",
+        "nodes",
+        "piece_slots",
+        "window",
+        "long_slots",
+    ),
+)
+
+
 def _apply(terms, corner_basis, dvertices, dpoints, *, views):
     """The linear part: dV (G, n²) from the vertex motion (V, 3) and the viewpoint motion (G, 3)."""
     va, vb, view, normal, corner, ca, cb = terms
@@ -598,7 +624,7 @@ def bsv_mesh_edgescan_diff(
     *,
     edge_table: EdgeTable | None = None,
     slots: tuple[int, int, int, int] | None = None,
-    grad_slots: int | tuple[int, ...] | None = None,
+    grad_slots: int | tuple[int, ...] | Callable[[], int | tuple[int, ...] | None] | None = None,
     nodes: int = 2,
 ) -> Float[Array, "T P n2"]:
     """Edge-scan BSV coefficients (T, P, n²) with the silhouette derivative (module docstring).
@@ -619,7 +645,9 @@ def bsv_mesh_edgescan_diff(
             and third tier of list reading; an int gives the pairs only (every node keeps a slot,
             generous pixel lists, slower); None: 30 % of all (edge, view) pairs (a derivative
             sees traced vertices: measure a concrete pose with :func:`edgescan_grad_slots` for
-            speed). An overflow raises at run time.
+            speed); or a function of no arguments returning one of those, called (outside any
+            trace, so it must close over concrete values only) when a derivative is first traced,
+            so that a forward pass never pays for the measurement. An overflow raises at run time.
         nodes: Gauss–Legendre nodes per projected edge (2: exact for the bilinear part on edges of
             constant visibility; most projected edges are shorter than a pixel).
 
@@ -639,18 +667,22 @@ def bsv_mesh_edgescan_diff(
         vertices, faces_np, grid, directions, shell, edge_table, slots
     )
     cap, width = int(table.a.shape[0]) * grid[0] * grid[1], directions[1]
-    if grad_slots is None:  # a derivative always sees traced vertices: there is no pose to measure
-        grad_slots = _default_grad_slots(table, grid)
-    pair_slots, node_slots, piece_slots, window, *long_slots = _check_grad_slots(
-        grad_slots, nodes, directions, grid[0] * grid[1]
-    )
-    pair_slots = min(_round_up(pair_slots, _WORD), cap)
-    every = pair_slots * int(nodes)
-    node_slots = min(_round_up(node_slots, _WORD), every)
-    piece_slots = _round_up(piece_slots, _WORD)
-    long_slots = tuple(min(_round_up(x, _WORD), every) for x in long_slots)
     n, nodes = int(n), int(nodes)
     views = grid[0] * grid[1]
+
+    def sizes():
+        """The derivative's static sizes, rounded and capped."""
+        gs = _measured(grad_slots) if callable(grad_slots) else grad_slots
+        if gs is None:  # a derivative always sees traced vertices: there is no pose to measure
+            gs = _default_grad_slots(table, grid)
+        pairs, live, pieces, window, *longs = _check_grad_slots(gs, nodes, directions, views)
+        pairs = min(_round_up(pairs, _WORD), cap)
+        every = pairs * nodes
+        longs = tuple(min(_round_up(x, _WORD), every) for x in longs)
+        return pairs, min(_round_up(live, _WORD), every), _round_up(pieces, _WORD), window, longs
+
+    if not callable(grad_slots):
+        sizes()  # bad sizes are an error of this call, not of a later derivative
     basis_w = _basis_weights(directions, shell, n, vertices.dtype)
 
     # Traced, a pose may need more edge-scan slots than the measured ones: that call then reruns
@@ -679,8 +711,10 @@ def bsv_mesh_edgescan_diff(
     def bsv_jvp(primals, tangents):
         (x,), (dx,) = primals, tangents
         x0 = lax.stop_gradient(x)
+        pair_slots, node_slots, piece_slots, window, long_slots = sizes()
         out, counts = forward(x0)
-        *terms, total, count, over = _slot_terms(
+        slot_terms = _slot_terms if isinstance(x0, jax.core.Tracer) else _slot_terms_jit
+        *terms, total, count, over = slot_terms(
             x0,
             faces_np,
             table,
