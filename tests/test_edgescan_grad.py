@@ -252,29 +252,25 @@ def test_traced_overflow_of_gradient_slots_raises():
 
 
 def test_callable_grad_slots_are_measured_when_a_derivative_is_traced():
-    # grad_slots may be a function: a forward pass never calls it; a derivative calls it (outside
-    # the trace) whether it is jit of grad or grad of jit, with the same result
-    from jshadow.visibility import edgescan_grad_slots
-
+    # grad_slots may be a function: a forward pass never calls it; a derivative calls it once per
+    # trace, outside the trace (here grad of jit, where the derivative rule is traced after the
+    # forward; eager and jit-of-grad at scene level: test_render_grad.py)
     x, f = _ico(1)
     x = jnp.asarray(x, jnp.float32)
-    grid, res = (2, 3), (8, 8)
     calls = []
 
     def measure():
         calls.append(1)
-        return edgescan_grad_slots(np.asarray(x), f, grid, SHELL, directions=res)
+        return 256  # pairs (every node keeps a slot): no counting passes to compile here
 
     def loss(v):
-        return jnp.sum(bsv_mesh_edgescan_diff(v, f, 2, grid, res, SHELL, grad_slots=measure) ** 2)
+        return jnp.sum(bsv_mesh_edgescan_diff(v, f, 2, (2, 3), (8, 8), SHELL, grad_slots=measure) ** 2)
 
     jax.block_until_ready(jax.jit(loss)(x))
     assert not calls
-    a = np.asarray(jax.jit(jax.grad(loss))(x))
-    assert len(calls) == 1 and np.abs(a).max() > 0
-    b = np.asarray(jax.grad(jax.jit(loss))(x))
-    assert len(calls) == 2
-    np.testing.assert_allclose(b, a, rtol=1e-5, atol=1e-6 * np.abs(a).max())
+    g = np.asarray(jax.grad(jax.jit(loss))(x))
+    assert len(calls) == 1
+    assert np.all(np.isfinite(g)) and np.abs(g).max() > 0
 
 
 def test_node_compaction_keeps_the_gradient_and_overflow_raises():

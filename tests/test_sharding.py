@@ -56,8 +56,8 @@ SCRIPT = textwrap.dedent(
         same = bool(a.shape == b.shape and np.array_equal(a, b))
         return [same, float(np.abs(a - b).max() / max(np.abs(a).max(), 1e-30)) if a.shape == b.shape else 1.0]
 
-    for name, rend, fs in [("sharded", Renderer(scene, devices=2), (0, 2)),
-                           ("sharded_chunk16", Renderer(scene, devices=2, chunk=16), (1,))]:
+    # (chunked pieces over two devices: the CLI run below, --devices 2 --chunk 20)
+    for name, rend, fs in [("sharded", Renderer(scene, devices=2), (0, 2))]:
         for f in fs:
             res = rend.frame(f)[0]
             for k in ("irradiance", "radiance", "points", "normals"):
@@ -131,7 +131,7 @@ def test_two_host_devices_sharded_receivers_frames_and_cli(tmp_path):
     assert f0 == f2 != f1
 
     diffs = r["diffs"]
-    assert len(diffs) == 3 * 4 + 3
+    assert len(diffs) == 2 * 4 + 3
     # receiver positions and normals are computed once per frame, before sharding: identical
     assert all(v[0] for k, v in diffs.items() if k.endswith(("points", "normals"))), diffs
     # whole frames on another device run the same compiled program: identical
