@@ -312,7 +312,8 @@ def _image_grad_slots(occ: MeshOccluder, faces: np.ndarray, m, lazy: bool = Fals
 
     def measure(poses):
         grid, shell, directions = m.bsv_grid, m.shell, m.directions
-        gs = [edgescan_grad_slots(v, faces, grid, shell, directions=directions) for v in poses]
+        es = _edgescan_slots(occ, faces, m)  # the largest over the same poses: one compile for all
+        gs = [edgescan_grad_slots(v, faces, grid, shell, directions=directions, slots=es) for v in poses]
         return tuple(max(x) for x in zip(*gs, strict=True))
 
     return _cached_slots("image", occ, faces, m, measure, _merge_max, None, lazy=lazy)

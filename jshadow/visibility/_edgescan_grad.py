@@ -175,6 +175,7 @@ def edgescan_grad_slots(
     edge_table: EdgeTable | None = None,
     directions: tuple[int, int] = (32, 32),
     nodes: int = 2,
+    slots: tuple[int, int, int, int] | None = None,
 ) -> tuple[int, int, int, int, int]:
     """Static sizes ``(pairs, nodes, pieces, window, long, longer)`` for
     :func:`bsv_mesh_edgescan_diff`'s ``grad_slots``.
@@ -186,6 +187,9 @@ def edgescan_grad_slots(
     ``longer``: the nodes whose pixel list is longer than 16 and 48 entries. Counted on the given
     (concrete) pose, times ``margin``, rounded up to a multiple of 32 (the window: of 8).
     Silhouettes of closed meshes hold a small share of the edges per view (the bunny: 12 %).
+    ``slots``: the edge-scan slots of the forward pass that gives the layer counts (as in
+    :func:`bsv_mesh_edgescan`; None: measured on the first pose of this topology). Measuring several
+    poses with the same ``slots`` (the largest over them) compiles that pass once.
     """
     if not (isinstance(margin, int | float) and margin >= 1.0):
         raise ValueError(f"margin must be a number >= 1, got {margin!r}")
@@ -199,7 +203,7 @@ def edgescan_grad_slots(
     pairs = min(_pow2(count), _round_up(cap, _WORD))
     kw = dict(grid=grid, directions=directions, shell=shell, slots=pairs, nodes=nodes)
     n_pieces, longest = (int(x) for x in _count_pieces(vertices, faces_j, table, **kw))
-    counts = _counts_of(vertices, faces_j, table, grid, directions, shell)
+    counts = _counts_of(vertices, faces_j, table, grid, directions, shell, slots)
     live, n_long, n_longer = (
         int(x)
         for x in _count_live(
@@ -209,7 +213,7 @@ def edgescan_grad_slots(
             counts,
             **kw,
             piece_slots=_pow2(n_pieces),
-            window=max(8, _pow2(longest)),
+            window=max(256, _pow2(longest)),  # (256: poses of one mesh share the compilation)
             long_slots=(pairs * nodes, pairs * nodes),
         )
     )
@@ -232,10 +236,10 @@ def _pow2(x):
     return 1 << max(5, (int(x) - 1).bit_length())
 
 
-def _counts_of(vertices, faces, table, grid, directions, shell):
+def _counts_of(vertices, faces, table, grid, directions, shell, slots=None):
     """Layer counts (G, N_x, N_y) of one edge-scan pass (concrete pose)."""
     vertices, _, table, grid, directions, shell, slots = _resolve(
-        vertices, faces, grid, directions, shell, table, None
+        vertices, faces, grid, directions, shell, table, slots
     )
     diff, _, _, _ = _compute(vertices, faces, table, grid, directions, shell, slots)
     return _stage_counts(diff)
