@@ -176,7 +176,7 @@ def edgescan_grad_slots(
     directions: tuple[int, int] = (32, 32),
     nodes: int = 2,
     slots: tuple[int, int, int, int] | None = None,
-) -> tuple[int, int, int, int, int]:
+) -> tuple[int, int, int, int, int, int]:
     """Static sizes ``(pairs, nodes, pieces, window, long, longer)`` for
     :func:`bsv_mesh_edgescan_diff`'s ``grad_slots``.
 
@@ -650,8 +650,9 @@ def bsv_mesh_edgescan_diff(
             generous pixel lists, slower); None: 30 % of all (edge, view) pairs (a derivative
             sees traced vertices: measure a concrete pose with :func:`edgescan_grad_slots` for
             speed); or a function of no arguments returning one of those, called (outside any
-            trace, so it must close over concrete values only) when a derivative is first traced,
-            so that a forward pass never pays for the measurement. An overflow raises at run time.
+            trace, so it must close over concrete values only) each time a derivative is traced
+            and never by a forward pass (cache inside it if it measures). An overflow raises at
+            run time.
         nodes: Gauss–Legendre nodes per projected edge (2: exact for the bilinear part on edges of
             constant visibility; most projected edges are shorter than a pixel).
 
