@@ -116,13 +116,17 @@ def test_stretch_gradient_comes_from_the_silhouette_and_matches_finite_differenc
     np.testing.assert_allclose(g, fd, rtol=0.08)
 
 
+def _weighted_bsv(a, method=METHOD, faces=FACES):
+    """A weighted sum of the stretched occluder's BSV coefficients (a scalar of the stretch a)."""
+    s = dataclasses.replace(scene_with(StretchY(a), faces), method=method)
+    b = mesh_bsv(s.occluders[0], 0.0, s)
+    return jnp.sum(b.coeffs * jnp.arange(b.coeffs.shape[-1], dtype=b.coeffs.dtype))
+
+
 def test_jit_of_grad_equals_grad_and_traced_faces_raise():
     # A scene built outside jit and closed over keeps its faces concrete: under jit (and under
     # grad of a jitted function) the BSV keeps its silhouette derivative; it equals the eager one.
-    def loss(a, faces=FACES):
-        s = scene_with(StretchY(a), faces)
-        b = mesh_bsv(s.occluders[0], 0.0, s)
-        return jnp.sum(b.coeffs * jnp.arange(b.coeffs.shape[-1], dtype=b.coeffs.dtype))
+    loss = _weighted_bsv
 
     a0 = jnp.float32(0.2)
     want = float(jax.grad(loss)(a0))
@@ -133,7 +137,7 @@ def test_jit_of_grad_equals_grad_and_traced_faces_raise():
     # Faces converted inside the trace are tracers: the forward pass still works, but a derivative
     # would miss the silhouette term (binary visibility), so it raises instead of returning zero.
     def traced(a):
-        return loss(a, jnp.asarray(_ICO.faces, jnp.int32))
+        return loss(a, faces=jnp.asarray(_ICO.faces, jnp.int32))
 
     np.testing.assert_allclose(float(jax.jit(traced)(a0)), float(loss(a0)), rtol=1e-5)
     with pytest.raises(ValueError, match="mesh faces are traced"):
@@ -144,12 +148,8 @@ def test_eager_image_plane_gradient_equals_the_jitted_one():
     # the default gradient (image plane): its static sizes are measured when the derivative is
     # traced, from concrete poses taken beforehand, so the eager trace (whose deformation parameter
     # is a tracer) and jit of grad agree
-    method = Method(bsv_grid=(3, 4), directions=(8, 8))
-
     def loss(a):
-        s = dataclasses.replace(scene_with(StretchY(a)), method=method)
-        b = mesh_bsv(s.occluders[0], 0.0, s)
-        return jnp.sum(b.coeffs * jnp.arange(b.coeffs.shape[-1], dtype=b.coeffs.dtype))
+        return _weighted_bsv(a, Method(bsv_grid=(3, 4), directions=(8, 8)))
 
     a0 = jnp.float32(0.2)
     want = float(jax.grad(loss)(a0))
