@@ -226,6 +226,7 @@ def _concrete(x):
 
 
 _SLOTS: dict = {}
+_PENDING: dict = {}  # topology -> the lazy measurement of a concrete shape seen with it, not yet run
 
 
 def _cached_slots(kind: str, occ: MeshOccluder, faces: np.ndarray, m, measure, merge, none, *, lazy=False):
@@ -236,11 +237,14 @@ def _cached_slots(kind: str, occ: MeshOccluder, faces: np.ndarray, m, measure, m
     it, which a call whose rest pose is traced (fitting per-vertex offsets) reuses; ``none`` when no
     concrete pose of this topology has been seen. With ``lazy``, a shape not measured yet gives a
     zero-argument function that measures (eagerly, outside any trace) when called, for sizes that
-    only a derivative needs.
+    only a derivative needs; a traced rest pose of a topology whose concrete shape was seen but not
+    measured gets that shape's function.
     """
     topo = (kind, faces.shape, hash(faces.tobytes()), m.bsv_grid, m.directions, m.shell)
     unit = _concrete(occ.unit_vertices)
     if unit is None:
+        if lazy and topo not in _SLOTS and topo in _PENDING:
+            return _PENDING[topo]
         return _SLOTS.get(topo, none)
     key = (*topo, hash(unit.tobytes()))
     if key in _SLOTS:
@@ -254,7 +258,10 @@ def _cached_slots(kind: str, occ: MeshOccluder, faces: np.ndarray, m, measure, m
             _SLOTS[topo] = _SLOTS[key] if topo not in _SLOTS else merge(_SLOTS[topo], _SLOTS[key])
         return _SLOTS[key]
 
-    return run if lazy else run()
+    if lazy:
+        _PENDING.setdefault(topo, run)
+        return run
+    return run()
 
 
 def _poses(occ: MeshOccluder, unit: np.ndarray) -> list[np.ndarray]:

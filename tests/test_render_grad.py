@@ -199,3 +199,24 @@ def test_traced_rest_pose_reuses_the_slot_sizes_measured_on_a_concrete_one():
     probe(occ.unit_vertices + 0.01)
     assert concrete[0] is not None and concrete[1] is not None
     assert seen == [concrete]
+
+    # the image-plane sizes are measured lazily (only a derivative needs them): a concrete shape
+    # seen by a forward pass leaves its measurement pending, and a traced rest pose of the same
+    # topology gets it (the sizes of that shape), not generous defaults
+    other = Method(
+        bsv_grid=(5, 7), directions=(16, 16), bsv_gradient="image"
+    )  # a configuration no test measured
+    pending = _image_grad_slots(occ, faces, other, lazy=True)
+    assert callable(pending)
+    lazy_seen = []
+
+    @jax.jit
+    def probe_lazy(u):
+        o = eqx.tree_at(lambda o: o.unit_vertices, occ, u)
+        lazy_seen.append(_image_grad_slots(o, faces, other, lazy=True))
+        return u
+
+    probe_lazy(occ.unit_vertices + 0.01)
+    assert lazy_seen == [pending]
+    sizes = pending()
+    assert len(sizes) == 6 and sizes == _image_grad_slots(occ, faces, other)

@@ -466,6 +466,8 @@ def _winding_chi(pair, filled, counts, table, start, size, *, directions, shell,
     cx = (-tan_a + (col.astype(dtype) + 0.5) * (2.0 * tan_a / nx)).astype(dtype)
     cy = (-tan_a + (row.astype(dtype) + 0.5) * (2.0 * tan_a / ny)).astype(dtype)
     # every node reads the first tier; the nodes of longer lists are compacted for the next ones
+    # (nodes of padding pairs sit at the image centre, often in a long list: left out of the tiers)
+    real = filled[sid]
     lo = min(_TIERS[0], window)
     part = _crossings(table, st, sz, sid, x, y, cx, cy, lo=0, width=lo)
     n_tier = []
@@ -474,7 +476,7 @@ def _winding_chi(pair, filled, counts, table, start, size, *, directions, shell,
         if width <= 0:
             n_tier.append(jnp.zeros((), jnp.int32))
             continue
-        pos, n = _compact(_pack(sz > lo), slots)
+        pos, n = _compact(_pack((sz > lo) & real), slots)
         n_tier.append(n)
         live, i = pos >= 0, jnp.maximum(pos, 0)
         rest = _crossings(table, st[i], sz[i], sid[i], x[i], y[i], cx[i], cy[i], lo=lo, width=width)
@@ -483,7 +485,7 @@ def _winding_chi(pair, filled, counts, table, start, size, *, directions, shell,
     c_near = counts[view, col, row] + part
     ax, ay, bx, by, w = (pair[m][sid] for m in ("ax", "ay", "bx", "by", "w"))
     c_far = c_near - w * jnp.sign(_orient(ax, ay, bx, by, cx, cy))
-    chi = ((c_near == 0) | (c_far == 0)) & filled[sid]
+    chi = ((c_near == 0) | (c_far == 0)) & real
     return chi.reshape(s_, k_), jnp.max(sz), tuple(n_tier)
 
 
