@@ -466,7 +466,7 @@ def _winding_chi(pair, filled, counts, table, start, size, *, directions, shell,
     cx = (-tan_a + (col.astype(dtype) + 0.5) * (2.0 * tan_a / nx)).astype(dtype)
     cy = (-tan_a + (row.astype(dtype) + 0.5) * (2.0 * tan_a / ny)).astype(dtype)
     # every node reads the first tier; the nodes of longer lists are compacted for the next ones
-    # (nodes of padding pairs sit at the image centre, often in a long list: left out of the tiers)
+    # (nodes of padding pairs are no silhouette nodes: left out, whatever list their pixel has)
     real = filled[sid]
     lo = min(_TIERS[0], window)
     part = _crossings(table, st, sz, sid, x, y, cx, cy, lo=0, width=lo)
