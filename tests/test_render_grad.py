@@ -203,9 +203,7 @@ def test_traced_rest_pose_reuses_the_slot_sizes_measured_on_a_concrete_one():
     # the image-plane sizes are measured lazily (only a derivative needs them): a concrete shape
     # seen by a forward pass leaves its measurement pending, and a traced rest pose of the same
     # topology gets it (the sizes of that shape), not generous defaults
-    other = Method(
-        bsv_grid=(5, 7), directions=(16, 16), bsv_gradient="image"
-    )  # a configuration no test measured
+    other = Method(bsv_grid=(5, 7), directions=(16, 16), bsv_gradient="image")  # no other test's
     pending = _image_grad_slots(occ, faces, other, lazy=True)
     assert callable(pending)
     lazy_seen = []

@@ -688,8 +688,8 @@ def bsv_mesh_edgescan_diff(
         longs = tuple(min(_round_up(x, _WORD), every) for x in longs)
         return pairs, min(_round_up(live, _WORD), every), _round_up(pieces, _WORD), window, longs
 
-    if not callable(grad_slots):
-        sizes()  # bad sizes are an error of this call, not of a later derivative
+    # given sizes are checked now (bad ones are an error of this call, not of a later derivative)
+    fixed = None if callable(grad_slots) else sizes()
     basis_w = _basis_weights(directions, shell, n, vertices.dtype)
 
     # Traced, a pose may need more edge-scan slots than the measured ones: that call then reruns
@@ -718,7 +718,7 @@ def bsv_mesh_edgescan_diff(
     def bsv_jvp(primals, tangents):
         (x,), (dx,) = primals, tangents
         x0 = lax.stop_gradient(x)
-        pair_slots, node_slots, piece_slots, window, long_slots = sizes()
+        pair_slots, node_slots, piece_slots, window, long_slots = fixed or sizes()
         out, counts = forward(x0)
         slot_terms = _slot_terms if isinstance(x0, jax.core.Tracer) else _slot_terms_jit
         *terms, total, count, over = slot_terms(
