@@ -28,7 +28,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 from . import sh
 from ._numerics import fast_acos, fast_atan2, safe_div, safe_norm, safe_normalize, safe_sqrt
-from .entities import Environment, dir_to_latlong, latlong_to_dir
+from .entities import Environment, latlong_to_dir
 from .scaling import MkTable, mk_apply
 
 __all__ = [
@@ -480,10 +480,16 @@ def environment_irradiance_map(env: Environment, resolution: tuple[int, int] = (
 
 
 def environment_irradiance(table: IrradianceMap, normals: Float[ArrayLike, "... 3"]) -> Float[Array, "... 3"]:
-    """Unoccluded environment irradiance (..., 3) at unit normals, bilinear in the map's (u, v)."""
+    """Unoccluded environment irradiance (..., 3) at unit normals, bilinear in the map's (u, v).
+
+    The normals' (u, v) are :func:`jshadow.entities.dir_to_latlong`'s, from the polynomial angles
+    (:func:`jshadow._numerics.fast_atan2`, within 3.1e-7 rad in float32; exact in float64):
+    XLA:CPU's ``atan2`` and ``acos`` were most of this lookup's time for per-vertex normals."""
     vals = table.values
     rows, cols = vals.shape[0], vals.shape[1]
-    u, v = dir_to_latlong(jnp.asarray(normals))
+    normals = jnp.asarray(normals)
+    v = fast_acos(normals[..., 1]) / jnp.pi
+    u = jnp.mod(fast_atan2(-normals[..., 2], normals[..., 0]) / (2.0 * jnp.pi), 1.0)
     a = jnp.clip(v * (rows - 1), 0.0, rows - 1.0)
     i0 = jnp.clip(jnp.floor(a).astype(jnp.int32), 0, rows - 2)
     wa = (a - i0.astype(a.dtype))[..., None]

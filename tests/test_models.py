@@ -101,6 +101,30 @@ def test_irradiance_map_constant_and_sky(x64):
     np.testing.assert_allclose(np.asarray(e), 7 * math.pi / 9, rtol=2e-3)
 
 
+def test_irradiance_lookup_with_polynomial_angles_equals_the_exact_angles(rng):
+    """float32 normals, including the poles, the seam (u = 0 / 1) and the map's last row: the
+    lookup's polynomial angles give the exact angles' bilinear interpolation to float32 rounding."""
+    from jshadow.entities import dir_to_latlong
+
+    img = np.asarray(read_latlong(ASSETS / "envmaps" / "venice_sunset_512x256.hdr"), np.float32)
+    m = environment_irradiance_map(Environment(radiance=jnp.ones(3), image=jnp.asarray(img), kind="hdr"))
+    nrm = rng.normal(size=(500, 3))
+    nrm = np.concatenate([nrm, [[0, 1, 0], [0, -1, 0], [1, 0, 0], [1, 0, -1e-7], [1, 0, 1e-7], [0, 0, 1]]])
+    nrm = jnp.asarray(nrm / np.linalg.norm(nrm, axis=1, keepdims=True), jnp.float32)
+    got = np.asarray(environment_irradiance(m, nrm))
+    vals = np.asarray(m.values, np.float64)
+    rows, cols = vals.shape[:2]
+    u, v = (np.asarray(x, np.float64) for x in dir_to_latlong(nrm))  # exact atan2 / acos
+    a = np.clip(v * (rows - 1), 0, rows - 1)
+    i0 = np.clip(np.floor(a).astype(int), 0, rows - 2)
+    b = u * cols
+    j0 = np.floor(b).astype(int) % cols
+    wa, wb = (a - i0)[:, None], (b - np.floor(b))[:, None]
+    top = (1 - wb) * vals[i0, j0] + wb * vals[i0, (j0 + 1) % cols]
+    bot = (1 - wb) * vals[i0 + 1, j0] + wb * vals[i0 + 1, (j0 + 1) % cols]
+    np.testing.assert_allclose(got, (1 - wa) * top + wa * bot, rtol=2e-5, atol=2e-5 * vals.max())
+
+
 def test_irradiance_map_hdr_against_pixel_sum(x64, rng):
     img = np.asarray(read_latlong(ASSETS / "envmaps" / "venice_sunset_512x256.hdr"), np.float64)
     env = Environment(radiance=jnp.ones(3), image=jnp.asarray(img), kind="hdr")

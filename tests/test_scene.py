@@ -309,6 +309,17 @@ def test_combine_shared_normal_gradient_equals_per_receiver():
     np.testing.assert_allclose(g49, grad(c0, 0), rtol=1e-4, atol=1e-4 * float(jnp.abs(g49).max()))
 
 
+def test_environment_rows_equal_the_three_operand_einsum(x64, rng):
+    from jshadow.scene import _env_rows
+
+    for n2 in (4, 16):
+        v, t = rng.normal(size=(37, n2)), rng.normal(size=(37, n2))
+        m = rng.normal(size=(3, n2, n2))
+        want = np.einsum("ni,cik,nk->nc", v, m, t)
+        got = np.asarray(_env_rows(jnp.asarray(v), jnp.asarray(m), jnp.asarray(t)))
+        np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)
+
+
 def test_shared_normal_count():
     from jshadow.scene import shared_normal_count
 
