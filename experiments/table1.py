@@ -19,7 +19,7 @@ timing the two halves on their own: "sampling" = the occlusion mask only (brute:
 frames and ``ray_fan_any_hit``; edge-scan: ``edgescan_occlusion``, which includes the scanline's
 row prefix sum), "SH" = ``√(4π)·e0 − occ @ (w·Y)`` on a precomputed mask. The fused BSV time (the
 one a frame pays) is reported beside them and used for FPS. Shadowing comes from
-:class:`jshadow.runner.Renderer`'s separately compiled stages (field, combine). All times are warm
+:class:`jshadow.runner.Renderer` with ``split_stages=True`` (field, combine timed apart). All times are warm
 medians of ``--runs`` calls with ``block_until_ready``; first-call (compile) times separately.
 
 The paper's figures (2.8 GHz Pentium IV, 1 GB RAM, nVidia GeForce 6800 GT; BSV and SH on the
@@ -124,7 +124,7 @@ def measure(model: str, setting: str, res: int, runs: int) -> dict:
     bw = basis_weights(setting, m, v.dtype)
     sh_first, sh_ms, _ = timed(project, occ_mask, bw, runs=runs)
 
-    r = Renderer(scene)
+    r = Renderer(scene, split_stages=True)  # field and combination timed separately
     t0_first = r.frame(0)[1]
     stages = [r.frame(0)[1] for _ in range(runs)]  # BSV reused: field + combine only
     field_ms = float(np.median([s["field_ms"] for s in stages]))

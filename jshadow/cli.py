@@ -170,6 +170,7 @@ def cmd_render(args) -> int:
         chunk=args.chunk,
         progress=scene.n_frames == 1,
         devices=args.devices,
+        split_stages=args.split_stages,
     )
     frames, exposure, gif = [], None, []
     n_plane = scene.receivers.points.shape[0]
@@ -198,10 +199,7 @@ def cmd_render(args) -> int:
         "devices": 1 if renderer.mesh is None else int(renderer.mesh.devices.size),
         "frames": len(frames),
         "first_frame_ms": frames[0].get("first_call", frames[0])["total_ms"],
-        "median_ms": {
-            k: float(np.median([fr[k] for fr in warm]))
-            for k in ("bsv_ms", "field_ms", "combine_ms", "total_ms")
-        },
+        "median_ms": {k: float(np.median([fr[k] for fr in warm])) for k in warm[0] if k.endswith("_ms")},
         "bsv_computations": renderer.bsv_computations,
         "wall_s_including_pictures": wall,
         "per_frame": frames,
@@ -215,10 +213,11 @@ def cmd_render(args) -> int:
             lambda fh: fh.write(iio.imwrite("<bytes>", gif, extension=".gif", duration=80, loop=0)),
         )
     m = summary["median_ms"]
+    split = f" = field {m['field_ms']:.1f} + combine {m['combine_ms']:.1f}" if "field_ms" in m else ""
     print(
         f"rendered {len(frames)} frame(s), {summary['receivers']} receivers -> {out}  "
-        f"(warm median {m['total_ms']:.1f} ms/frame: BSV {m['bsv_ms']:.1f}, field {m['field_ms']:.1f}, "
-        f"combine {m['combine_ms']:.1f}; first frame incl. compile {summary['first_frame_ms']:.0f} ms)"
+        f"(warm median {m['total_ms']:.1f} ms/frame: BSV {m['bsv_ms']:.1f}, shading {m['shading_ms']:.1f}"
+        f"{split}; first frame incl. compile {summary['first_frame_ms']:.0f} ms)"
     )
     return 0
 
@@ -301,19 +300,26 @@ def cmd_bench(args) -> int:
     t0 = time.perf_counter()
     res, _ = rend.frame(0)
     first = time.perf_counter() - t0
-    rows = [rend.frame(i % scene.n_frames)[1] for i in range(1, args.frames + 1)]
+    split = Renderer(scene, split_stages=True)  # the shading's split, frames alternating with rend
+    split.frame(0)
+    rows, split_rows = [], []
+    for i in range(1, args.frames + 1):
+        rows.append(rend.frame(i % scene.n_frames)[1])
+        split_rows.append(split.frame(i % scene.n_frames)[1])
     med = {k: float(np.median([r[k] for r in rows])) for k in rows[0]}
+    split_med = {k: float(np.median([r[k] for r in split_rows])) for k in split_rows[0]}
     out = {
         "config": args.config,
         "device": str(jax.devices()[0]),
         "receivers": int(res.points.shape[0]),
         "compile_s": max(first - med["total_ms"] / 1e3, 0.0),
         "median_ms": med,
+        "split_median_ms": split_med,
         "fps": 1e3 / med["total_ms"],
     }
-    print(f"{'stage':<12}{'median ms':>12}")
-    for k, v in med.items():
-        print(f"{k:<12}{v:>12.2f}")
+    print(f"{'stage':<12}{'median ms':>12}{'split stages':>14}")
+    for k, v in split_med.items():
+        print(f"{k:<12}{med[k] if k in med else float('nan'):>12.2f}{v:>14.2f}")
     print(f"receivers {out['receivers']}, {out['fps']:.1f} frames/s, compile {out['compile_s']:.1f} s")
     if args.spp:
         t0 = time.perf_counter()
@@ -479,6 +485,11 @@ def build_parser() -> argparse.ArgumentParser:
         help="receivers evaluated per step (default 131072); lower it to bound memory",
     )
     r.add_argument("--devices", type=int, default=None, help="shard the receivers over this many JAX devices")
+    r.add_argument(
+        "--split-stages",
+        action="store_true",
+        help="time field evaluation and combination separately (three calls per frame, slower)",
+    )
     r.set_defaults(func=cmd_render)
 
     q = sub.add_parser("reference", help="Monte Carlo ground truth for a scene config")

@@ -1,10 +1,14 @@
 """Frame-by-frame rendering with reuse, per-stage timings, bounded memory and several devices.
 
 :func:`jshadow.scene.render` is the pure, differentiable function. :class:`Renderer` runs the same
-computation as separately compiled stages — BSV sampling, field evaluation, combination — so
-that each can be timed, and skips work the animation does not need: an occluder whose shape does not
-change over time (no deformation, or a deformation whose amount is the same at every frame) has its
-BSV computed once and reused for every frame.
+computation as two compiled calls per frame — the BSVs, then the shading (placing the frame's
+receivers, field evaluation and combination in one call) — and skips work the animation does not
+need: an occluder whose shape does not change over time (no deformation, or a deformation whose
+amount is the same at every frame) has its BSV computed once and reused for every frame.
+``split_stages=True`` runs the shading as three calls instead (receivers, field, combination) so
+that each can be timed; the one-call shading is faster (fewer dispatches and synchronisations, and
+XLA schedules the stages together: the animated bunny's shading 3.4 → 2.6 ms, BENCHMARKS.md) and
+gives the same numbers up to rounding (XLA may fuse differently; tests check 1e-5).
 
 Memory: the field and combination stages materialise per-receiver arrays (visibility SH of every
 occluder, rotation blocks, products), so a frame with more than ``chunk`` receivers is evaluated in
@@ -74,11 +78,31 @@ def _fields(scene, bsvs, points):
     return (jnp.stack(vis), jnp.stack(dist)) if vis else (vis, dist)
 
 
-@eqx.filter_jit
-def _combine(scene, points, normals, vis, dist, lighting, analytic_spheres, shared_normal):
+def _combine_piece(scene, points, normals, vis, dist, lighting, analytic_spheres, shared_normal):
     vis, dist = list(vis), list(dist)  # (m, ...) arrays or empty lists -> lists of m arrays
     e = combine(scene, points, normals, vis, dist, lighting, analytic_spheres, shared_normal)
     return e, e * (scene.receivers.albedo / math.pi)
+
+
+_combine = eqx.filter_jit(_combine_piece)
+
+
+def _shade_piece(scene, bsvs, points, normals, lighting, analytic_spheres, shared_normal):
+    """Field evaluation and combination of one piece of receivers, traced together."""
+    vis, dist = occluder_visibilities(scene, bsvs, points)
+    return _combine_piece(scene, points, normals, vis, dist, lighting, analytic_spheres, shared_normal)
+
+
+_shade = eqx.filter_jit(_shade_piece)
+
+
+@eqx.filter_jit
+def _place_and_shade(scene, light, bsvs, t, lighting, analytic_spheres, shared_normal):
+    """A whole frame's shading in one call: its receivers (:func:`receivers_at_time`), then
+    :func:`_shade_piece` on all of them (``light`` is ``scene`` without its receiver arrays)."""
+    points, normals = receivers_at_time(scene, t)
+    e, rad = _shade_piece(light, bsvs, points, normals, lighting, analytic_spheres, shared_normal)
+    return points, normals, e, rad
 
 
 def _without_receivers(scene: Scene) -> Scene:
@@ -101,6 +125,9 @@ class Renderer:
         devices: None (the default device, no sharding), an integer n (the first n JAX devices) or a
             list of devices: each piece's receivers are sharded over them (the piece size is rounded
             up to a multiple of the device count).
+        split_stages: run the shading as separate calls — placing the receivers, field evaluation,
+            combination — so that :meth:`frame` can time each (module docstring); slower than the
+            default single shading call.
     """
 
     def __init__(
@@ -110,7 +137,10 @@ class Renderer:
         chunk: int | None = None,
         progress: bool = False,
         devices: int | Sequence[jax.Device] | None = None,
+        split_stages: bool = False,
     ):
+        if not isinstance(split_stages, bool):
+            raise TypeError(f"split_stages must be True or False, got {split_stages!r}")
         chunk = DEFAULT_CHUNK if chunk is None else chunk
         if isinstance(chunk, bool) or not isinstance(chunk, int | np.integer) or chunk < 1:
             raise ValueError(f"chunk must be a positive integer (receivers per piece), got {chunk!r}")
@@ -118,12 +148,18 @@ class Renderer:
         self.sphere_path = sphere_path
         self.chunk = int(chunk)
         self.progress = progress
+        self.split_stages = split_stages
         self.mesh = None if devices is None else _parallel.receiver_mesh(devices)
         self._light = _without_receivers(scene)
         # environment SH / irradiance map: once per renderer, not per frame (and finished here, so
         # that the asynchronous dispatch does not leak into the first frame's BSV timing)
         self._lighting = jax.block_until_ready(scene_lighting(scene))
         self._shared_normal = shared_normal_count(scene.receivers.normals)  # the plane's rows lead
+        self._extra_receivers = (  # the occluders' own vertices, when they are receivers too
+            sum(o.unit_vertices.shape[0] for o in scene.occluders if isinstance(o, MeshOccluder))
+            if scene.self_shadow
+            else 0
+        )
         self._static_bsvs: dict[int, object] = {}
         self.bsv_computations = 0  # how many BSVs were actually sampled (tests check the reuse)
 
@@ -149,10 +185,12 @@ class Renderer:
         return size
 
     def frame(self, frame: int) -> tuple[RenderResult, dict]:
-        """Render one frame; returns the result and stage timings in milliseconds.
+        """Render one frame; returns the result and its timings in milliseconds.
 
-        ``field_ms`` includes placing the receivers of the frame; with several pieces the field and
-        combination times are summed over the pieces.
+        ``bsv_ms``: the BSVs; ``shading_ms``: placing the frame's receivers, field evaluation and
+        combination; ``total_ms``: both. With ``split_stages`` also ``field_ms`` (including placing
+        the receivers) and ``combine_ms``, whose sum is ``shading_ms``. With several pieces the
+        shading times are summed over the pieces.
         """
         from tqdm.auto import tqdm
 
@@ -161,8 +199,20 @@ class Renderer:
         bsvs = jax.block_until_ready(self._bsvs(t))
         t1 = time.perf_counter()
         t_arr = jnp.asarray(t, self.scene.receivers.points.dtype)  # traced: one compilation for all frames
+        analytic = self.sphere_path == "analytic"
+        n = self.scene.receivers.points.shape[0] + self._extra_receivers
+        if not self.split_stages and self.mesh is None and n <= self.chunk:
+            points, normals, e, rad = jax.block_until_ready(
+                _place_and_shade(
+                    self.scene, self._light, bsvs, t_arr, self._lighting, analytic, self._shared_normal
+                )
+            )
+            t2 = time.perf_counter()
+            res = RenderResult(points=points, normals=normals, irradiance=e, radiance=rad)
+            times = {"bsv_ms": 1e3 * (t1 - t0), "shading_ms": 1e3 * (t2 - t1)}
+            times["total_ms"] = times["bsv_ms"] + times["shading_ms"]
+            return res, times
         points, normals = jax.block_until_ready(_receivers(self.scene, t_arr))
-        n = points.shape[0]
         size = self.piece_size(n)
         starts = range(0, n, size)
         field_s = time.perf_counter() - t1
@@ -176,21 +226,19 @@ class Renderer:
             q = _parallel.pad_rows(normals[s : s + size], size) if (s, size) != (0, n) else normals
             if self.mesh is not None:
                 p, q = _parallel.shard_rows(p, self.mesh), _parallel.shard_rows(q, self.mesh)
+            shared = min(max(self._shared_normal - s, 0), size)
             ta = time.perf_counter()
-            vis, dist = jax.block_until_ready(_fields(self._light, bsvs, p))
-            tb = time.perf_counter()
-            e, rad = jax.block_until_ready(
-                _combine(
-                    self._light,
-                    p,
-                    q,
-                    vis,
-                    dist,
-                    self._lighting,
-                    self.sphere_path == "analytic",
-                    min(max(self._shared_normal - s, 0), size),
+            if self.split_stages:
+                vis, dist = jax.block_until_ready(_fields(self._light, bsvs, p))
+                tb = time.perf_counter()
+                e, rad = jax.block_until_ready(
+                    _combine(self._light, p, q, vis, dist, self._lighting, analytic, shared)
                 )
-            )
+            else:
+                e, rad = jax.block_until_ready(
+                    _shade(self._light, bsvs, p, q, self._lighting, analytic, shared)
+                )
+                tb = time.perf_counter()
             tc = time.perf_counter()
             field_s += tb - ta
             combine_s += tc - tb
@@ -204,8 +252,10 @@ class Renderer:
             e = jnp.asarray(np.concatenate([np.asarray(x) for x in e_parts]))
             rad = jnp.asarray(np.concatenate([np.asarray(x) for x in r_parts]))
         res = RenderResult(points=points, normals=normals, irradiance=e, radiance=rad)
-        times = {"bsv_ms": 1e3 * (t1 - t0), "field_ms": 1e3 * field_s, "combine_ms": 1e3 * combine_s}
-        times["total_ms"] = sum(times.values())
+        times = {"bsv_ms": 1e3 * (t1 - t0), "shading_ms": 1e3 * (field_s + combine_s)}
+        if self.split_stages:
+            times |= {"field_ms": 1e3 * field_s, "combine_ms": 1e3 * combine_s}
+        times["total_ms"] = times["bsv_ms"] + times["shading_ms"]
         return res, times
 
 

@@ -97,6 +97,28 @@ def test_chunked_render_is_deterministic_and_agrees_with_one_piece(config_file):
         np.testing.assert_allclose(a[k], whole[k], rtol=0, atol=tol * np.abs(whole[k]).max())
 
 
+def test_one_call_shading_equals_the_split_stages(config_file):
+    """The default renderer shades a frame in one call (receivers, field, combination); with
+    ``split_stages`` the same arithmetic runs as three calls: the same numbers (XLA may fuse the two
+    differently, so up to rounding), in one piece and in pieces, and the timings say which ran."""
+    scene = jshadow.build_scene(jshadow.load_config(config_file))
+    tol = 8 * float(np.finfo(np.float32).eps)
+    for chunk in (None, 7):
+        one, t_one = Renderer(scene, chunk=chunk).frame(1)
+        split, t_split = Renderer(scene, chunk=chunk, split_stages=True).frame(1)
+        a, b = _arrays(one, KEYS), _arrays(split, KEYS)
+        _assert_identical(a, b, ("points", "normals"))
+        for k in ("irradiance", "radiance"):
+            np.testing.assert_allclose(a[k], b[k], rtol=0, atol=tol * np.abs(b[k]).max())
+        assert set(t_one) == {"bsv_ms", "shading_ms", "total_ms"}
+        assert set(t_split) == {"bsv_ms", "shading_ms", "field_ms", "combine_ms", "total_ms"}
+        assert t_split["shading_ms"] == pytest.approx(t_split["field_ms"] + t_split["combine_ms"])
+        for t in (t_one, t_split):
+            assert t["total_ms"] == pytest.approx(t["bsv_ms"] + t["shading_ms"]) and t["shading_ms"] > 0
+    with pytest.raises(TypeError, match="split_stages"):
+        Renderer(scene, split_stages="yes")
+
+
 def test_render_frames_on_two_host_threads_equals_one_renderer(config_file):
     scene = jshadow.build_scene(jshadow.load_config(config_file))
     rend = Renderer(scene)
