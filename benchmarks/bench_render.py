@@ -1,13 +1,18 @@
-"""Render-time benchmark: ms per frame split into BSV / field evaluation / combination.
+"""Render-time benchmark: ms per frame, BSV / shading, and the shading split into field / combination.
 
 Usage::
 
     python benchmarks/bench_render.py [--frames 12] [--json out.json] [--methods default paper paper-shell1.5]
 
 Rows:
-* every shipped config (configs/*.toml, fit configs excluded): warm median per stage;
-* the animated bunny (deforming every frame, 160×160 plane + self-shadowing, studio map);
-* shading cost per receiver per occluder: field + combination time / (receivers × occluders);
+* every shipped config (configs/*.toml, fit configs excluded): warm medians of the renderer's
+  default (BSV, then the whole shading in one call) and, frames alternating with it, of a renderer
+  with ``split_stages=True`` (receivers + field, combination: three calls, slower, for the split);
+* the animated bunny (deforming every frame, 160×160 plane + self-shadowing, studio map), and its
+  shading time at 80², 160² and 320² plane receivers: marginal cost per receiver and fixed cost;
+* shading cost per receiver per occluder: the one-call shading time (placing the receivers, field
+  evaluation, combination) / (receivers × occluders), receivers counting the plane's and, with
+  self-shadowing, the occluders' vertices;
 * many occluders: 1, 4 and 16 sphere occluders through the BSV path over a 160×160 plane;
 * throughput of the animated bunny with :func:`jshadow.render_frames` on one and two host threads
   (whole frames, wall time per frame including the host copies of the results).
@@ -58,21 +63,49 @@ def throughput(scene, frames):
 
 
 def run_frames(scene, frames, sphere_path="analytic"):
+    """Warm medians of the one-call shading (:class:`Renderer`'s default) and of the same frames with
+    ``split_stages=True`` (field and combination timed separately), frames alternating between the
+    two renderers so that both see the same machine state."""
     rend = Renderer(scene, sphere_path=sphere_path)
+    split = Renderer(scene, sphere_path=sphere_path, split_stages=True)
     t0 = time.perf_counter()
-    _, first = rend.frame(0)
+    res, first = rend.frame(0)
     first_s = time.perf_counter() - t0
-    rows = []
+    split.frame(0)
+    rows, split_rows = [], []
     for i in range(frames):
-        _, t = rend.frame((i + 1) % max(scene.n_frames, 1))
-        rows.append(t)
+        f = (i + 1) % max(scene.n_frames, 1)
+        rows.append(rend.frame(f)[1])
+        split_rows.append(split.frame(f)[1])
     med = {k: float(np.median([r[k] for r in rows])) for k in rows[0]}
     return {
         "compile_s": max(first_s - med["total_ms"] / 1e3, 0.0),
         "median_ms": med,
+        "split_median_ms": {k: float(np.median([r[k] for r in split_rows])) for k in split_rows[0]},
         "fps": 1e3 / med["total_ms"],
-        "receivers": int(scene.receivers.points.shape[0]),
+        "receivers": int(
+            res.points.shape[0]
+        ),  # the plane's and, with self-shadowing, the occluders' vertices
     }
+
+
+def receiver_sweep(config, frames, resolutions=(80, 160, 320)):
+    """The animated bunny's one-call shading time at several plane resolutions: its least-squares
+    line in the receiver count splits the time into a marginal cost per receiver and a fixed cost
+    per frame (dispatch, the self-shadowed vertices' small operations, per-frame tables)."""
+    rows = []
+    for res in resolutions:
+        d = tomllib.loads(config.read_text())
+        d["receiver"]["resolution"] = [res, res]
+        scene = build_scene(config_from_dict(d, source=str(config), root=config.parent))
+        rend = Renderer(scene)
+        out, _ = rend.frame(0)
+        ms = [rend.frame((i + 1) % scene.n_frames)[1]["shading_ms"] for i in range(frames)]
+        rows.append(
+            {"resolution": res, "receivers": int(out.points.shape[0]), "shading_ms": float(np.median(ms))}
+        )
+    slope, fixed = np.polyfit([r["receivers"] for r in rows], [r["shading_ms"] for r in rows], 1)
+    return {"rows": rows, "marginal_us_per_receiver": 1e3 * float(slope), "fixed_ms": float(fixed)}
 
 
 def plane(n, size=4.0):
@@ -125,18 +158,30 @@ def main():
             r = run_frames(scene, args.frames)
             n_occ = max(len(scene.occluders), 1)
             r["shading_us_per_receiver_per_occluder"] = (
-                1e3 * (r["median_ms"]["field_ms"] + r["median_ms"]["combine_ms"]) / (r["receivers"] * n_occ)
+                1e3 * r["median_ms"]["shading_ms"] / (r["receivers"] * n_occ)
             )
             name = pathlib.Path(c).name + ("" if label == "default" else f" [{label}]")
             out["configs"][name] = r
+            sp = r["split_median_ms"]
             print(
                 f"{name:40s} {r['receivers']:7d} rec  compile {r['compile_s']:5.1f} s  "
                 + "  ".join(f"{k} {v:7.2f}" for k, v in r["median_ms"].items())
-                + f"  fps {r['fps']:6.1f}  shade {r['shading_us_per_receiver_per_occluder']:.3f} µs/rec/occ",
+                + f"  fps {r['fps']:6.1f}  shade {r['shading_us_per_receiver_per_occluder']:.3f} µs/rec/occ"
+                + f"  | split: field {sp['field_ms']:.2f} combine {sp['combine_ms']:.2f}"
+                + f" total {sp['total_ms']:.2f}",
                 flush=True,
             )
     if not args.configs or any("bunny_animated" in c for c in args.configs):
         c = ROOT / "configs" / "bunny_animated.toml"
+        out["receiver_sweep"] = receiver_sweep(c, args.frames)
+        sw = out["receiver_sweep"]
+        print(
+            "bunny_animated, plane resolution "
+            + ", ".join(f"{r['resolution']}²: {r['shading_ms']:.2f} ms" for r in sw["rows"])
+            + f" -> marginal shading {sw['marginal_us_per_receiver']:.3f} µs per receiver,"
+            + f" fixed {sw['fixed_ms']:.2f} ms per frame",
+            flush=True,
+        )
         scene = build_scene(config_from_dict(tomllib.loads(c.read_text()), source=str(c), root=c.parent))
         out["throughput"] = throughput(scene, 2 * args.frames + 8)
         print(
