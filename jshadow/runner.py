@@ -7,8 +7,9 @@ need: an occluder whose shape does not change over time (no deformation, or a de
 amount is the same at every frame) has its BSV computed once and reused for every frame.
 ``split_stages=True`` runs the shading as three calls instead (receivers, field, combination) so
 that each can be timed; the one-call shading is faster (fewer dispatches and synchronisations, and
-XLA schedules the stages together: the animated bunny's shading 3.4 → 2.6 ms, BENCHMARKS.md) and
-gives the same numbers up to rounding (XLA may fuse differently; tests check 1e-5).
+XLA schedules the stages together: the animated bunny's shading 2.0-2.4 ms against 2.5-3.0 ms
+split, frames alternating, BENCHMARKS.md) and gives the same numbers up to rounding (XLA may fuse
+the two differently; tests allow a few float32 ulps of the largest value).
 
 Memory: the field and combination stages materialise per-receiver arrays (visibility SH of every
 occluder, rotation blocks, products), so a frame with more than ``chunk`` receivers is evaluated in
@@ -271,10 +272,11 @@ def render_frames(
 
     Each device gets its own copy of the scene (:func:`jshadow._parallel.put_on`) and ``threads``
     host threads, each with its own :class:`Renderer` (compiled stages are shared), so the frames
-    assigned to a thread run there while the others work. On a CPU, XLA:CPU leaves part of the cores
-    idle in the small stages of a frame: two threads on the 2-core benchmark machine raise the
-    animated bunny's throughput by about 15 % (16.0-18.2 -> 13.5-15.4 ms per frame,
-    ``benchmarks/bench_render.py``); per-frame latency does not improve. ``frames`` defaults to every
+    assigned to a thread run there while the others work: useful where one frame leaves cores idle.
+    On the 2-core benchmark machine it no longer is: since a frame's shading runs as one call, two
+    threads lower the animated bunny's throughput (7.2-8.9 -> 8.8-11.5 ms per frame,
+    ``benchmarks/bench_render.py``; with three calls per frame they raised it by 0-15 %). Per-frame
+    latency does not improve. ``frames`` defaults to every
     frame of the scene. Returns the results in the order of ``frames``, as host (NumPy-backed) arrays
     on the default device.
     """
