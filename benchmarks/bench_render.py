@@ -6,8 +6,9 @@ Usage::
 
 Rows:
 * every shipped config (configs/*.toml, fit configs excluded): warm medians of the renderer's
-  default (BSV, then the whole shading in one call) and, frames alternating with it, of a renderer
-  with ``split_stages=True`` (receivers + field, combination: three calls, slower, for the split);
+  default (BSV, then the whole shading in one call) and of a renderer with ``split_stages=True``
+  (receivers + field, combination: three calls, slower, for the split), in four alternating blocks
+  of ``--frames`` frames each;
 * the animated bunny (deforming every frame, 160×160 plane + self-shadowing, studio map), and its
   shading time at 80², 160² and 320² plane receivers: marginal cost per receiver and fixed cost;
 * shading cost per receiver per occluder: the one-call shading time (placing the receivers, field
@@ -62,30 +63,32 @@ def throughput(scene, frames):
     return best
 
 
-def run_frames(scene, frames, sphere_path="analytic"):
-    """Warm medians of the one-call shading (:class:`Renderer`'s default) and of the same frames with
-    ``split_stages=True`` (field and combination timed separately), frames alternating between the
-    two renderers so that both see the same machine state."""
+def run_frames(scene, frames, sphere_path="analytic", blocks=4):
+    """Warm medians of the one-call shading (:class:`Renderer`'s default) and of the same frames
+    with ``split_stages=True`` (field and combination timed separately): ``blocks`` blocks of
+    ``frames`` frames per renderer, alternating, frames in sequence within a block as a render loop
+    runs them. (This VM drifts by ±40 % within minutes, so a single block of each gave either
+    renderer ahead; alternating frame by frame slowed both: each found the caches filled by the
+    other's buffers.)"""
     rend = Renderer(scene, sphere_path=sphere_path)
     split = Renderer(scene, sphere_path=sphere_path, split_stages=True)
     t0 = time.perf_counter()
     res, first = rend.frame(0)
     first_s = time.perf_counter() - t0
     split.frame(0)
+    sel = [(i + 1) % max(scene.n_frames, 1) for i in range(frames)]
     rows, split_rows = [], []
-    for i in range(frames):
-        f = (i + 1) % max(scene.n_frames, 1)
-        rows.append(rend.frame(f)[1])
-        split_rows.append(split.frame(f)[1])
+    for _ in range(blocks):
+        rows += [rend.frame(f)[1] for f in sel]
+        split_rows += [split.frame(f)[1] for f in sel]
     med = {k: float(np.median([r[k] for r in rows])) for k in rows[0]}
     return {
         "compile_s": max(first_s - med["total_ms"] / 1e3, 0.0),
         "median_ms": med,
         "split_median_ms": {k: float(np.median([r[k] for r in split_rows])) for k in split_rows[0]},
         "fps": 1e3 / med["total_ms"],
-        "receivers": int(
-            res.points.shape[0]
-        ),  # the plane's and, with self-shadowing, the occluders' vertices
+        "receivers": int(res.points.shape[0]),  # plane and, with self-shadowing, occluder vertices
+        "frames_timed": len(rows),
     }
 
 

@@ -300,12 +300,11 @@ def cmd_bench(args) -> int:
     t0 = time.perf_counter()
     res, _ = rend.frame(0)
     first = time.perf_counter() - t0
-    split = Renderer(scene, split_stages=True)  # the shading's split, frames alternating with rend
+    split = Renderer(scene, split_stages=True)  # the shading's split, timed after rend's frames
     split.frame(0)
-    rows, split_rows = [], []
-    for i in range(1, args.frames + 1):
-        rows.append(rend.frame(i % scene.n_frames)[1])
-        split_rows.append(split.frame(i % scene.n_frames)[1])
+    sel = [i % scene.n_frames for i in range(1, args.frames + 1)]
+    rows = [rend.frame(f)[1] for f in sel]  # in sequence, as a render loop runs them
+    split_rows = [split.frame(f)[1] for f in sel]
     med = {k: float(np.median([r[k] for r in rows])) for k in rows[0]}
     split_med = {k: float(np.median([r[k] for r in split_rows])) for k in split_rows[0]}
     out = {
