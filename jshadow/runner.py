@@ -7,8 +7,8 @@ need: an occluder whose shape does not change over time (no deformation, or a de
 amount is the same at every frame) has its BSV computed once and reused for every frame.
 ``split_stages=True`` runs the shading as three calls instead (receivers, field, combination) so
 that each can be timed; the one-call shading is faster (fewer dispatches and synchronisations, and
-XLA schedules the stages together: the animated bunny's shading 2.0-2.3 ms against 2.6-3.3 ms
-split in two runs of 100 frames each, BENCHMARKS.md) and gives the same numbers up to rounding (XLA may fuse
+XLA schedules the stages together: the animated bunny's shading 1.99 ms against 2.57 ms split,
+medians of 100 frames each, BENCHMARKS.md) and gives the same numbers up to rounding (XLA may fuse
 the two differently; tests allow a few float32 ulps of the largest value).
 
 Memory: the field and combination stages materialise per-receiver arrays (visibility SH of every
@@ -274,7 +274,7 @@ def render_frames(
     host threads, each with its own :class:`Renderer` (compiled stages are shared), so the frames
     assigned to a thread run there while the others work: useful where one frame leaves cores idle.
     On the 2-core benchmark machine it no longer is: since a frame's shading runs as one call, two
-    threads lower the animated bunny's throughput (6.5-9.7 -> 8.1-11.5 ms per frame in seven runs,
+    threads lower the animated bunny's throughput (6.5-8.9 -> 8.1-11.5 ms per frame in six runs,
     ``benchmarks/bench_render.py``; with three calls per frame they raised it by 0-15 %). Per-frame
     latency does not improve. ``frames`` defaults to every
     frame of the scene. Returns the results in the order of ``frames``, as host (NumPy-backed) arrays
