@@ -27,6 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jshadow._numerics import fast_atan2
+from jshadow.scene import _env_rows
 from jshadow.sh import (
     cap,
     product_matrix,
@@ -164,6 +165,10 @@ def _field_cases(rng, n_rec):
     ]
 
 
+def _env_einsum(v, m, t):
+    return jnp.einsum("ni,cik,nk->nc", v, m, t)
+
+
 def _grad(f):
     return jax.grad(lambda *a: jnp.sum(f(*a) ** 2), argnums=(0, 1, 2))
 
@@ -191,6 +196,7 @@ def main(argv=None) -> int:
     cos_a = jnp.asarray(rng.uniform(-1, 1, size=n_rec).astype(np.float32))
     theta = jnp.asarray(rng.uniform(0, np.pi, size=n_rec).astype(np.float32))
     phi = jnp.asarray(rng.uniform(-np.pi, np.pi, size=n_rec).astype(np.float32))
+    m_env = jnp.asarray(rng.normal(size=(3, N * N, N * N)).astype(np.float32))
 
     cases = [
         ("sh_basis (n=4)", n_dirs, lambda d: sh_basis(d, N), (dirs,)),
@@ -211,6 +217,9 @@ def main(argv=None) -> int:
         ("rotate from (θ, φ): rotate_zyz (Euler angles)", n_rec, _rot_zyz, (a, theta, phi)),
         ("grad of Σ rotated² via bsv_frames + fitting", n_rec, _grad(_rot_fit), (a, theta, phi)),
         ("grad of Σ rotated² via rotate_zyz", n_rec, _grad(_rot_zyz), (a, theta, phi)),
+        # a receiver's environment term Σ_ik v_i M[c,i,k] t_k (combination, a normal per receiver)
+        ("env term Σ v M t: three-operand einsum (comparison)", n_rec, _env_einsum, (a, m_env, b)),
+        ("env term Σ v M t: two GEMMs (scene._env_rows)", n_rec, _env_rows, (a, m_env, b)),
     ]
     cases += _field_cases(rng, n_rec)
     rows = []

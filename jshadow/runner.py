@@ -98,10 +98,12 @@ _shade = eqx.filter_jit(_shade_piece)
 
 
 @eqx.filter_jit
-def _place_and_shade(scene, light, bsvs, t, lighting, analytic_spheres, shared_normal):
+def _place_and_shade(scene, bsvs, t, lighting, analytic_spheres, shared_normal):
     """A whole frame's shading in one call: its receivers (:func:`receivers_at_time`), then
-    :func:`_shade_piece` on all of them (``light`` is ``scene`` without its receiver arrays)."""
+    :func:`_shade_piece` on all of them (traced on the scene without its receiver arrays, as the
+    pieces of the split path are, so that both compile the same field and combination)."""
     points, normals = receivers_at_time(scene, t)
+    light = _without_receivers(scene)
     e, rad = _shade_piece(light, bsvs, points, normals, lighting, analytic_spheres, shared_normal)
     return points, normals, e, rad
 
@@ -156,11 +158,9 @@ class Renderer:
         # that the asynchronous dispatch does not leak into the first frame's BSV timing)
         self._lighting = jax.block_until_ready(scene_lighting(scene))
         self._shared_normal = shared_normal_count(scene.receivers.normals)  # the plane's rows lead
-        self._extra_receivers = (  # the occluders' own vertices, when they are receivers too
-            sum(o.unit_vertices.shape[0] for o in scene.occluders if isinstance(o, MeshOccluder))
-            if scene.self_shadow
-            else 0
-        )
+        # receivers per frame (the plane's and, with self-shadowing, the occluders' vertices): the
+        # same at every time; from the shapes alone
+        self._receiver_count = jax.eval_shape(lambda: receivers_at_time(scene, 0.0))[0].shape[0]
         self._static_bsvs: dict[int, object] = {}
         self.bsv_computations = 0  # how many BSVs were actually sampled (tests check the reuse)
 
@@ -201,12 +201,10 @@ class Renderer:
         t1 = time.perf_counter()
         t_arr = jnp.asarray(t, self.scene.receivers.points.dtype)  # traced: one compilation for all frames
         analytic = self.sphere_path == "analytic"
-        n = self.scene.receivers.points.shape[0] + self._extra_receivers
+        n = self._receiver_count
         if not self.split_stages and self.mesh is None and n <= self.chunk:
             points, normals, e, rad = jax.block_until_ready(
-                _place_and_shade(
-                    self.scene, self._light, bsvs, t_arr, self._lighting, analytic, self._shared_normal
-                )
+                _place_and_shade(self.scene, bsvs, t_arr, self._lighting, analytic, self._shared_normal)
             )
             t2 = time.perf_counter()
             res = RenderResult(points=points, normals=normals, irradiance=e, radiance=rad)

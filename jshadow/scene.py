@@ -463,8 +463,8 @@ def _stack_groups(groups, values):
 def _env_rows(v: Float[Array, "N n2"], m_env: Float[Array, "3 n2 n2"], t: Float[Array, "N n2"]):
     """``Σ_ik v_i M_env[c, i, k] t_k`` per receiver (N, 3): one (N, n²)·(n², 3n²) GEMM, then the
     row-wise dots with t as a second GEMM with a constant 0/1 block matrix. An einsum over the
-    three operands compiled to a batched (1 × n²)·(n² × 3) product per receiver on XLA:CPU, about
-    2× slower (1901 receivers: 185 → 75–104 µs in isolation, BENCHMARKS.md)."""
+    three operands compiled to a batched (1 × n²)·(n² × 3) product per receiver on XLA:CPU: 1e5
+    receivers 18.4 → 2.3 ms (``benchmarks/bench_sh.py``), 1901 receivers 185 → 75–104 µs."""
     n2 = v.shape[-1]
     y = v @ jnp.transpose(m_env, (1, 0, 2)).reshape(n2, 3 * n2)  # (N, 3n²): channel-major
     blocks = jnp.asarray(np.kron(np.eye(3), np.ones((n2, 1))), v.dtype)  # (3n², 3)
