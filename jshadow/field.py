@@ -30,7 +30,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from . import sh
-from ._numerics import fast_acos, fast_atan2, safe_norm, safe_normalize, safe_sqrt
+from ._numerics import fast_acos, fast_atan2, safe_norm, safe_normalize, safe_sqrt, small_sum
 from .scaling import MkTable, mk_apply_table, mk_bracket, mk_in_range
 from .visibility import BSV
 
@@ -256,7 +256,7 @@ def sphere_light_blocked(
     ca, cb = safe_sqrt(1.0 - sa * sa), safe_sqrt(1.0 - sb * sb)
     va, vb = sa * sa / (1.0 + ca), sb * sb / (1.0 + cb)
     uo, ul = safe_normalize(rel_o), safe_normalize(rel_l)
-    vg = jnp.clip(0.5 * jnp.sum((uo - ul) ** 2, -1), 0.0, 2.0)  # 1 − cos γ
+    vg = jnp.clip(0.5 * small_sum((uo - ul) ** 2), 0.0, 2.0)  # 1 − cos γ
     sg = safe_norm(jnp.cross(uo, ul))  # sin γ
     omega_a, omega_b = 2.0 * math.pi * va, 2.0 * math.pi * vb
     # cos γ − cos a cos b, and cos(a ∓ b) = cos a cos b ± sin a sin b

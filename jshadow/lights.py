@@ -27,7 +27,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from . import sh
-from ._numerics import fast_acos, fast_atan2, safe_div, safe_norm, safe_normalize, safe_sqrt
+from ._numerics import fast_acos, fast_atan2, safe_div, safe_norm, safe_normalize, safe_sqrt, small_sum
 from .entities import Environment, latlong_to_dir
 from .scaling import MkTable, mk_apply
 
@@ -35,6 +35,7 @@ __all__ = [
     "read_latlong",
     "environment_sh",
     "sphere_light_sh",
+    "sphere_light_dot",
     "sphere_light_srf",
     "cap_zonal_t",
     "sphere_light_irradiance",
@@ -293,6 +294,32 @@ def sphere_light_sh(
     return c[..., None] * jnp.asarray(radiance)[..., None, :]
 
 
+def sphere_light_dot(
+    center: Float[ArrayLike, "... 3"],
+    radius: Float[ArrayLike, "..."],
+    points: Float[ArrayLike, "... 3"],
+    w: Float[ArrayLike, "... n2"],
+    n: int,
+) -> Float[Array, "..."]:
+    """``Σ_i c_i w_i`` (...) for the SH c of a unit-radiance spherical light seen from the points.
+
+    The same number as ``jnp.sum(sphere_light_sh(center, radius, 1, points, n)[..., 0] * w, -1)``
+    (receivers inside the light see it everywhere), evaluated as one fused polynomial per receiver
+    (:func:`jshadow.sh.zonal_dot`) without the light's (..., n²) coefficients. With w the transfer
+    T this is the light's unoccluded n-band irradiance; with ``w = P(T) V`` (``P(T)`` the matrix of
+    "multiply by T") its irradiance through the visibility V. ``w`` broadcasts against the points'
+    batch axes (one shared (n²,) row for a plane's common transfer).
+    """
+    if int(n) != n or n < 1:
+        raise ValueError(f"n (number of SH bands) must be a positive integer, got {n}")
+    d, axis, radius = _light_geometry(center, radius, points)
+    w = jnp.asarray(w)
+    s = jnp.clip(safe_div(radius, d, fill=1.0), 0.0, 1.0)  # sin α
+    t = s * s / (1.0 + safe_sqrt(1.0 - s * s))  # 1 − cos α without cancellation
+    cap = sh.zonal_dot(cap_zonal_t(t, n), axis, w)
+    return jnp.where(d > radius, cap, math.sqrt(4.0 * math.pi) * w[..., 0])
+
+
 def sphere_light_srf(
     center: Float[ArrayLike, "... 3"],
     radius: Float[ArrayLike, "..."],
@@ -375,7 +402,7 @@ def sphere_light_irradiance(
     d, axis, radius = _light_geometry(center, radius, points)
     normals = jnp.asarray(normals)
     s = jnp.clip(safe_div(radius, d, fill=1.0), 0.0, 1.0)  # sin α
-    c = jnp.clip(jnp.sum(normals * axis, -1), -1.0, 1.0)  # cos β
+    c = jnp.clip(small_sum(normals * axis), -1.0, 1.0)  # cos β
     above = c >= s
     part = (c > -s) & ~above
     s_p = jnp.where(part, s, 1.0)  # > 0 on the cut branch (|c| < s); double where below

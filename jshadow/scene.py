@@ -30,6 +30,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from . import sh
+from ._numerics import safe_norm
 from .entities import MeshOccluder, Scene, SphereOccluder, frame_time, receivers_at_time
 from .field import bsv_visibility_and_distance, sphere_light_blocked, sphere_visibility_sh, unit_visibility
 from .geometry import bounding_sphere
@@ -38,6 +39,7 @@ from .lights import (
     environment_irradiance,
     environment_irradiance_map,
     environment_sh,
+    sphere_light_dot,
     sphere_light_irradiance,
     sphere_light_sh,
 )
@@ -342,7 +344,7 @@ def occluder_visibilities(
     for i, (occ, b) in enumerate(zip(scene.occluders, bsvs, strict=True)):
         if b is None:
             vis[i] = sphere_visibility_sh(occ.center, occ.radius, points, n)
-            dist[i] = jnp.linalg.norm(points - occ.center, axis=-1)
+            dist[i] = safe_norm(points - occ.center)
         else:
             groups.setdefault(b.coeffs.shape, []).append(i)
     for idx in groups.values():
@@ -533,7 +535,9 @@ def combine(
         return jnp.concatenate(parts, 0) if len(parts) > 1 else parts[0]
 
     e = jnp.zeros((n_rec, 3), dtype)
-
+    exact_blockers = [
+        ratio and analytic_spheres and isinstance(occ, SphereOccluder) for occ in scene.occluders
+    ]
     if scene.environment is not None:
         l_env = lighting.env_sh.astype(dtype)  # (n², 3)
         v_all = _product(vis)
@@ -565,32 +569,58 @@ def combine(
         if ratio and not vis:
             e = e + exact * light.radiance
             continue
-        cap = sphere_light_sh(light.center, light.radius, one, points, n)[..., 0]  # (N, n²)
-        unoccluded = by_group(
-            cap, lambda c, t0: c @ t0[:, None], lambda c, t: jnp.sum(t * c, -1, keepdims=True)
+
+        def cap_rows(a, b, light=light, one=one):
+            return sphere_light_sh(light.center, light.radius, one, points[a:b], n)[..., 0]  # (rows, n²)
+
+        def light_dot(a, b, w, light=light):
+            # Σ_i cap_i w_i, one fused pass (the light's (rows, n²) coefficients never stored)
+            return sphere_light_dot(light.center, light.radius, points[a:b], w, n)[:, None]
+
+        caps = {
+            k: cap_rows(a, b) for k, ((a, b, _), t) in enumerate(zip(groups, transfers)) if t.shape[0] > 1
+        }
+        unoccluded = jnp.concatenate(
+            [
+                light_dot(a, b, t[0]) if t.shape[0] == 1 else jnp.sum(t * caps[k], -1, keepdims=True)
+                for k, ((a, b, _), t) in enumerate(zip(groups, transfers, strict=True))
+            ],
+            0,
         )
         if not vis:
             e = e + unoccluded * light.radiance
             continue
-        d_l = jnp.linalg.norm(points - light.center, axis=-1)
-        unit = unit_visibility((points.shape[0],), n, dtype)
-        exact_blockers = [
-            ratio and analytic_spheres and isinstance(occ, SphereOccluder) for occ in scene.occluders
-        ]
-        near = [
-            jnp.where((dj < d_l)[:, None], vj, unit)
-            for vj, dj, ex in zip(vis, dist, exact_blockers, strict=True)
-            if not ex
-        ]
+        d_l = safe_norm(points - light.center)
+        near = [(vj, dj < d_l) for vj, dj, ex in zip(vis, dist, exact_blockers, strict=True) if not ex]
         visible = jnp.ones((points.shape[0], 1), dtype)
         for occ, dj, ex in zip(scene.occluders, dist, exact_blockers, strict=True):
             if ex:
                 hidden = sphere_light_blocked(occ.center, occ.radius, light.center, light.radius, points)
                 visible = visible * jnp.where(dj < d_l, 1.0 - hidden, 1.0)[:, None]
         if near:
-            # T ⊛ cap (N, n²); with a shared normal one GEMM with "multiply by T₀"
-            lt = by_group(cap, lambda c, t0: c @ sh.product_matrix(t0).T, lambda c, t: sh.sh_product(t, c))
-            occluded = jnp.sum(_product(near) * lt, -1, keepdims=True)
+            unit = unit_visibility((points.shape[0],), n, dtype)
+            v_near = None if len(near) == 1 else _product([jnp.where(m[:, None], vj, unit) for vj, m in near])
+            parts = []
+            for k, ((a, b, _), t) in enumerate(zip(groups, transfers, strict=True)):
+                if t.shape[0] == 1:
+                    # ⟨V, T₀ ⊛ cap⟩ = ⟨V P(T₀), cap⟩ with P(T₀) the matrix of "multiply by T₀": one
+                    # GEMM, then the light's fused dot; one occluder selects after the GEMM (V ↦ V P
+                    # is linear, and the unit visibility's row is √(4π) P₀)
+                    pm = sh.product_matrix(t[0])
+                    if v_near is None:
+                        vj, m = near[0]
+                        w = jnp.where(m[:, None], vj @ pm, math.sqrt(4.0 * math.pi) * pm[0])
+                    else:
+                        w = v_near @ pm
+                    parts.append(light_dot(a, b, w[a:b]))
+                else:
+                    v_rows = (
+                        jnp.where(near[0][1][a:b, None], near[0][0][a:b], unit[a:b])
+                        if v_near is None
+                        else v_near[a:b]
+                    )
+                    parts.append(jnp.sum(v_rows * sh.sh_product(t, caps[k]), -1, keepdims=True))
+            occluded = jnp.concatenate(parts, 0) if len(parts) > 1 else parts[0]
             occluded = _shadow_ratio(occluded, unoccluded, exact) if ratio else occluded
         else:
             occluded = exact

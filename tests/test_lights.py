@@ -10,7 +10,7 @@ from conftest import BATCH_SHAPES
 
 from jshadow import lights
 from jshadow.entities import Environment
-from jshadow.lights import environment_sh, read_latlong, sphere_light_sh, sphere_light_srf
+from jshadow.lights import environment_sh, read_latlong, sphere_light_dot, sphere_light_sh, sphere_light_srf
 from jshadow.scaling import f_k, mk_table
 from jshadow.sh import clamped_cosine, sh_basis
 
@@ -238,6 +238,32 @@ def test_sphere_light_batch_shapes(shape, rng):
         jnp.asarray([0.0, 3.0, 0.0], jnp.float32), jnp.float32(0.5), jnp.ones(3, jnp.float32), pts, 4
     )
     assert out.shape == (*shape, 16, 3) and out.dtype == jnp.float32
+
+
+@pytest.mark.parametrize("shape", BATCH_SHAPES)
+def test_sphere_light_dot_is_the_inner_product_with_its_sh(x64, shape, rng):
+    # receivers outside, on the surface of and inside the light; w one shared row and per receiver
+    center, radius = jnp.asarray([0.2, 2.0, -0.1]), jnp.asarray(0.6)
+    pts = center + jnp.asarray(rng.normal(size=(*shape, 3))) * jnp.asarray(
+        rng.uniform(0.1, 3.0, size=(*shape, 1))
+    )
+    pts = pts.reshape(-1, 3).at[0].set(center + jnp.asarray([0.0, -0.6, 0.0])).reshape(pts.shape)
+    cap = sphere_light_sh(center, radius, jnp.ones(1), pts, 4)[..., 0]
+    for w in (jnp.asarray(rng.normal(size=16)), jnp.asarray(rng.normal(size=(*shape, 16)))):
+        got = sphere_light_dot(center, radius, pts, w, 4)
+        assert got.shape == shape
+        np.testing.assert_allclose(got, jnp.sum(cap * w, -1), rtol=1e-12, atol=1e-12)
+
+    def both(p, pts):  # gradients: light position/radius and receivers, generic and at d = r
+        dot = sphere_light_dot(p[:3], p[3], pts, w, 4).sum()
+        ref = jnp.sum(sphere_light_sh(p[:3], p[3], jnp.ones(1), pts, 4)[..., 0] * w)
+        return dot, ref
+
+    p = jnp.concatenate([center, radius[None]])
+    for arg in (0, 1):
+        g = jax.jacrev(both, argnums=arg)(p, pts)
+        assert np.all(np.isfinite(g[0]))
+        np.testing.assert_allclose(g[0], g[1], rtol=1e-10, atol=1e-10)
 
 
 @pytest.mark.usefixtures("x64")

@@ -15,6 +15,7 @@ from jshadow._numerics import (
     safe_norm,
     safe_normalize,
     safe_sqrt,
+    small_sum,
 )
 
 
@@ -109,3 +110,17 @@ def test_fast_acos_matches_and_is_finite_at_the_ends(dtype):
             assert np.isfinite(g)
         g = jax.grad(fast_acos)(jnp.asarray(0.3, dtype))
         np.testing.assert_allclose(g, -1 / np.sqrt(1 - 0.09), rtol=1e-6)
+
+
+@pytest.mark.parametrize("shape, axis", [((5, 3), -1), ((3,), 0), ((2, 4, 3), 1), ((2, 6), -1), ((1, 1), 0)])
+@pytest.mark.parametrize("keepdims", [False, True])
+def test_small_sum_is_jnp_sum(shape, axis, keepdims):
+    # unrolled for axes of length <= 4 (6 takes jnp.sum), the same numbers and shapes
+    x = jnp.asarray(np.random.default_rng(0).normal(size=shape), jnp.float32)
+    got, want = small_sum(x, axis, keepdims), jnp.sum(x, axis=axis, keepdims=keepdims)
+    assert got.shape == want.shape
+    np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-6)
+    g = jax.grad(lambda x: (small_sum(x, axis, keepdims) ** 2).sum())(x)
+    np.testing.assert_allclose(
+        g, 2 * jnp.broadcast_to(jnp.sum(x, axis=axis, keepdims=True), shape), rtol=1e-6
+    )

@@ -259,16 +259,20 @@ def _shared_normal_scene(shading):
     return Scene(Method(bsv_grid=(12, 20), directions=(16, 16), shading=shading), rec, occ, (light,), env)
 
 
-@pytest.mark.parametrize("shading, sphere_path", [("ratio", "bsv"), ("product", "analytic")])
-def test_combine_shared_normal_equals_per_receiver(shading, sphere_path):
+@pytest.mark.parametrize(
+    "shading, sphere_path, occluders", [("ratio", "bsv", 2), ("product", "analytic", 2), ("ratio", "bsv", 1)]
+)
+def test_combine_shared_normal_equals_per_receiver(shading, sphere_path, occluders):
     # the plane's receivers share one normal: computing their transfer, unoccluded irradiance,
     # environment shading vector and "multiply by T" matrix once must give what the per-receiver
-    # path gives (both settings send the sphere light through the SH product with the transfer)
+    # path gives (every setting sends the sphere light through the SH product with the transfer;
+    # one occluder takes the shared path's select after the GEMM, two their product)
     from functools import partial
 
     from jshadow.scene import combine, occluder_visibilities, scene_bsvs, scene_lighting, shared_normal_count
 
     scene = _shared_normal_scene(shading)
+    scene = eqx_replace(scene, occluders=scene.occluders[:occluders])
     pts, nrm = scene.receivers.points, scene.receivers.normals
     assert shared_normal_count(nrm) == 49
     vis, dist = occluder_visibilities(scene, scene_bsvs(scene, 0.0, sphere_path), pts)

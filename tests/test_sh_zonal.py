@@ -17,6 +17,7 @@ from jshadow.sh import (
     zonal_cap,
     zonal_cap_versine,
     zonal_clamped_cosine,
+    zonal_dot,
     zonal_rotate,
 )
 
@@ -151,6 +152,30 @@ def test_batch_shapes(rng, shape):
         np.testing.assert_allclose(c.reshape(-1, 16)[i], cap(flat_axis[i], flat_t[i], 4), rtol=tol, atol=tol)
     # a single cap angle broadcasts over a batch of axes
     assert cap(axis, jnp.asarray(0.5, jnp.float32), 4).shape == (*shape, 16)
+
+
+@pytest.mark.parametrize("shape", BATCH_SHAPES)
+def test_zonal_dot_is_the_inner_product_with_the_rotated_coefficients(x64, rng, shape):
+    # the fused form against zonal_rotate's coefficients, values and gradients, batched; w shared
+    # by the whole batch (one row) and per element
+    axis = jnp.asarray(random_dirs(rng, shape, np.float64))
+    z = jnp.asarray(rng.normal(size=(*shape, 4)))
+    for w in (jnp.asarray(rng.normal(size=16)), jnp.asarray(rng.normal(size=(*shape, 16)))):
+        got = zonal_dot(z, axis, w)
+        want = jnp.sum(zonal_rotate(z, axis) * w, -1)
+        assert got.shape == shape
+        np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)
+    for i in range(3):
+        g_got = jax.grad(lambda *a: zonal_dot(*a).sum(), argnums=i)(z, axis, w)
+        g_want = jax.grad(lambda z, a, w: jnp.sum(zonal_rotate(z, a) * w), argnums=i)(z, axis, w)
+        np.testing.assert_allclose(g_got, g_want, rtol=1e-12, atol=1e-12)
+
+
+def test_zonal_dot_bad_shapes():
+    with pytest.raises(ValueError, match="n² = 16"):
+        zonal_dot(jnp.ones(4), jnp.asarray([0.0, 0.0, 1.0]), jnp.ones(9))
+    with pytest.raises(ValueError, match="axis"):
+        zonal_dot(jnp.ones(4), jnp.ones(2), jnp.ones(16))
 
 
 def test_bad_input():

@@ -28,4 +28,5 @@ from ._zonal import clamped_cosine as clamped_cosine
 from ._zonal import zonal_cap as zonal_cap
 from ._zonal import zonal_cap_versine as zonal_cap_versine
 from ._zonal import zonal_clamped_cosine as zonal_clamped_cosine
+from ._zonal import zonal_dot as zonal_dot
 from ._zonal import zonal_rotate as zonal_rotate

@@ -28,9 +28,17 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
-from ._basis import sh_basis
+from ._basis import _basis_list, sh_basis
 
-__all__ = ["zonal_cap", "zonal_cap_versine", "zonal_clamped_cosine", "zonal_rotate", "cap", "clamped_cosine"]
+__all__ = [
+    "zonal_cap",
+    "zonal_cap_versine",
+    "zonal_clamped_cosine",
+    "zonal_rotate",
+    "zonal_dot",
+    "cap",
+    "clamped_cosine",
+]
 
 
 def _check_n(n) -> int:
@@ -182,6 +190,39 @@ def zonal_rotate(z: Float[ArrayLike, "... n"], axis: Float[ArrayLike, "... 3"]) 
         [jnp.broadcast_to(s, (*s.shape[:-1], 2 * l + 1)) for l, s in enumerate(per_band)], axis=-1
     )
     return scale * y
+
+
+def zonal_dot(
+    z: Float[ArrayLike, "... n"], axis: Float[ArrayLike, "... 3"], w: Float[ArrayLike, "... n2"]
+) -> Float[Array, "..."]:
+    """Inner product ``Σ_lm c_lm w_lm`` of :func:`zonal_rotate` ``(z, axis)`` with coefficients w.
+
+    Args:
+        z: (..., n) zonal coefficients (about +z).
+        axis: (..., 3) unit axes (not renormalised).
+        w: (..., n²) coefficients; the batch axes of all three broadcast against each other.
+
+    Returns:
+        (...) ``Σ_l sqrt(4π/(2l+1)) z_l Σ_m w_lm Y_lm(axis)``.
+
+    The same number as ``jnp.sum(zonal_rotate(z, axis) * w, -1)``, but written as one polynomial
+    per element, so that XLA evaluates it in a single fused pass without the (..., n²) rotated
+    coefficients (or the basis) ever stored: on XLA:CPU the basis of 16384 axes alone is 16
+    per-coefficient passes and a concatenation (BENCHMARKS.md, "Rendering").
+    """
+    z, axis, w = jnp.asarray(z), jnp.asarray(axis), jnp.asarray(w)
+    if z.ndim < 1 or axis.shape[-1:] != (3,):
+        raise ValueError(f"need z (..., n) and axis (..., 3), got shapes {z.shape} and {axis.shape}")
+    n = z.shape[-1]
+    if w.shape[-1:] != (n * n,):
+        raise ValueError(f"w must have a trailing axis of n² = {n * n} for n = {n} bands, got {w.shape}")
+    ys = _basis_list(axis[..., 0], axis[..., 1], axis[..., 2], n)
+    acc = None
+    for l in range(n):
+        band = sum(w[..., i] * ys[i] for i in range(l * l, (l + 1) * (l + 1)))
+        term = (math.sqrt(4.0 * math.pi / (2 * l + 1)) * z[..., l]) * band
+        acc = term if acc is None else acc + term
+    return acc
 
 
 def cap(
