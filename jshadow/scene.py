@@ -504,10 +504,13 @@ def combine(
     receiver 0 (a plane; :func:`shared_normal_count`). What depends on the normal alone is then
     computed once for all of them — the transfer T₀, the unoccluded environment irradiance, the
     environment's shading vectors ``w_c = M_env[c] T₀`` (each receiver's environment term becomes
-    one n²×3 product ``V · w``) and the matrix of "multiply by T₀" (a sphere light's ``T ⊛ cap``
-    becomes one n²×n² product instead of a triple product): the same numbers up to rounding,
-    1.8–3.5× less combination time per frame of the shipped configs (BENCHMARKS.md, "Rendering").
-    Their normals' cotangents all flow to receiver 0.
+    one n²×3 product ``V · w``) and the matrix P(T₀) of "multiply by T₀": a sphere light's
+    ``⟨V, T ⊛ cap⟩`` becomes ``⟨V P(T₀), cap⟩``, one n²×n² product and a fused polynomial per
+    receiver (:func:`jshadow.lights.sphere_light_dot`; the light's (N, n²) coefficients are never
+    stored), instead of a triple product: the same numbers up to rounding, 1.8–3.5× less
+    combination time per frame of the shipped configs, and the fused dot another 0.70–0.78× of the
+    whole shading call of the configs with a sphere light (BENCHMARKS.md, "Rendering"). Their
+    normals' cotangents all flow to receiver 0.
     """
     n = scene.method.sh_bands
     ratio = scene.method.shading == "ratio"
