@@ -26,7 +26,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jshadow._numerics import fast_atan2
+from jshadow._numerics import fast_atan2, small_sum
+from jshadow.lights import sphere_light_dot, sphere_light_sh
 from jshadow.scene import _env_rows
 from jshadow.sh import (
     cap,
@@ -169,6 +170,25 @@ def _env_einsum(v, m, t):
     return jnp.einsum("ni,cik,nk->nc", v, m, t)
 
 
+def _norm_sum(p, c):
+    """|p − c| with jnp.sum over the axis of 3 (comparison for _numerics.small_sum)."""
+    return jnp.sqrt(jnp.sum((p - c) ** 2, -1))
+
+
+def _norm_small_sum(p, c):
+    return jnp.sqrt(small_sum((p - c) ** 2))
+
+
+def _light_dot_via_sh(p, w):
+    """⟨cap, w⟩ from the light's (N, n²) SH coefficients (comparison for lights.sphere_light_dot)."""
+    c = sphere_light_sh(jnp.asarray([1.0, 3.5, 1.5]), 0.4, jnp.ones(1), p, N)[..., 0]
+    return jnp.sum(c * w, -1)
+
+
+def _light_dot_fused(p, w):
+    return sphere_light_dot(jnp.asarray([1.0, 3.5, 1.5]), 0.4, p, w, N)
+
+
 def _grad(f):
     return jax.grad(lambda *a: jnp.sum(f(*a) ** 2), argnums=(0, 1, 2))
 
@@ -212,6 +232,16 @@ def main(argv=None) -> int:
         ("fast_atan2, float32", n_dirs, fast_atan2, (dirs[:, 1], dirs[:, 0])),
         ("product_matrix (n=4)", n_rec, product_matrix, (a,)),
         ("cap (n=4)", n_rec, lambda ax, t: cap(ax, t, N), (axes, cos_a)),
+        # distances of receivers (norm over an axis of 3) and a sphere light's <cap, w> (combination)
+        ("norm of (N, 3) offsets, jnp.sum (comparison)", n_rec, _norm_sum, (axes * 3.0, axes[0])),
+        ("norm of (N, 3) offsets, small_sum", n_rec, _norm_small_sum, (axes * 3.0, axes[0])),
+        (
+            "sphere light <cap, w>: its (N, n²) SH, then the dot (comparison)",
+            n_rec,
+            _light_dot_via_sh,
+            (axes * 3.0, a),
+        ),
+        ("sphere light <cap, w>: sphere_light_dot (fused)", n_rec, _light_dot_fused, (axes * 3.0, a)),
         # the field's rotation from the BSV frame at (θ, φ) to world, two ways (and their gradients)
         ("rotate from (θ, φ): bsv_frames + fitting", n_rec, _rot_fit, (a, theta, phi)),
         ("rotate from (θ, φ): rotate_zyz (Euler angles)", n_rec, _rot_zyz, (a, theta, phi)),

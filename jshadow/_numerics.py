@@ -141,9 +141,9 @@ def small_sum(x: Float[ArrayLike, "... d"], axis: int = -1, keepdims: bool = Fal
     """``jnp.sum(x, axis)``; over a short axis (d <= 4) as unrolled adds.
 
     XLA:CPU (jax 0.10) hands a reduction over a trailing axis of length 3 to a library kernel that
-    neither fuses with its operands nor with its users: the norm of 16384 offsets took 112 µs that
-    way and 30 µs unrolled (fastest of 500 alternating calls; BENCHMARKS.md, "Rendering"). Unrolled,
-    it fuses into the surrounding elementwise work.
+    neither fuses with its operands nor with its users: the norm of 1e5 offsets took 0.93 ms that
+    way and 0.27 ms unrolled (``benchmarks/bench_sh.py``; BENCHMARKS.md, "Spherical harmonics").
+    Unrolled, it fuses into the surrounding elementwise work.
     """
     x = jnp.asarray(x)
     ax = axis % x.ndim

@@ -265,6 +265,16 @@ def _light_geometry(center, radius, points):
     return safe_norm(rel), safe_normalize(rel), radius
 
 
+def _cap_geometry(center, radius, points, n):
+    """Distance d to the light's centre, the unit axis toward it, the radius and the cap's
+    ``t = 1 − cos α`` (α = asin(r/d); 1 inside the light), checking n."""
+    if int(n) != n or n < 1:
+        raise ValueError(f"n (number of SH bands) must be a positive integer, got {n}")
+    d, axis, radius = _light_geometry(center, radius, points)
+    s = jnp.clip(safe_div(radius, d, fill=1.0), 0.0, 1.0)  # sin α
+    return d, axis, radius, s * s / (1.0 + safe_sqrt(1.0 - s * s))  # 1 − cos α without cancellation
+
+
 def _full_sphere(shape, n, dtype):
     return jnp.zeros((*shape, n * n), dtype).at[..., 0].set(math.sqrt(4.0 * math.pi))
 
@@ -284,11 +294,7 @@ def sphere_light_sh(
     radiance and points are finite everywhere (the cap's edge moves infinitely fast as d → r⁺; at
     d = r itself the gradient of α is 0 by construction).
     """
-    if int(n) != n or n < 1:
-        raise ValueError(f"n (number of SH bands) must be a positive integer, got {n}")
-    d, axis, radius = _light_geometry(center, radius, points)
-    s = jnp.clip(safe_div(radius, d, fill=1.0), 0.0, 1.0)  # sin α
-    t = s * s / (1.0 + safe_sqrt(1.0 - s * s))  # 1 − cos α without cancellation
+    d, axis, radius, t = _cap_geometry(center, radius, points, n)
     c = sh.zonal_rotate(cap_zonal_t(t, n), axis)
     c = jnp.where((d > radius)[..., None], c, _full_sphere(d.shape, n, c.dtype))
     return c[..., None] * jnp.asarray(radiance)[..., None, :]
@@ -310,12 +316,8 @@ def sphere_light_dot(
     "multiply by T") its irradiance through the visibility V. ``w`` broadcasts against the points'
     batch axes (one shared (n²,) row for a plane's common transfer).
     """
-    if int(n) != n or n < 1:
-        raise ValueError(f"n (number of SH bands) must be a positive integer, got {n}")
-    d, axis, radius = _light_geometry(center, radius, points)
+    d, axis, radius, t = _cap_geometry(center, radius, points, n)
     w = jnp.asarray(w)
-    s = jnp.clip(safe_div(radius, d, fill=1.0), 0.0, 1.0)  # sin α
-    t = s * s / (1.0 + safe_sqrt(1.0 - s * s))  # 1 − cos α without cancellation
     cap = sh.zonal_dot(cap_zonal_t(t, n), axis, w)
     return jnp.where(d > radius, cap, math.sqrt(4.0 * math.pi) * w[..., 0])
 
