@@ -261,7 +261,7 @@ def test_sphere_light_dot_is_the_inner_product_with_its_sh(x64, shape, rng):
 
     p = jnp.concatenate([center, radius[None]])
     for arg in (0, 1):
-        g = jax.jacrev(both, argnums=arg)(p, pts)
+        g = jax.jit(jax.jacrev(both, argnums=arg))(p, pts)
         assert np.all(np.isfinite(g[0]))
         np.testing.assert_allclose(g[0], g[1], rtol=1e-10, atol=1e-10)
 
