@@ -6,7 +6,8 @@ This VM's speed drifts by up to 2.5x between days and by +-40 % within minutes, 
 different runs (or from two processes run one after the other) do not compare. Here the package at
 ``--base`` is exported (``git archive``) into a temporary folder under another name (jshadow's
 imports are relative, so it runs as ``jshadow_base``) and both versions' one-call shading
-(``runner._place_and_shade``, BSVs done, the renderer's own arguments) are called in turn
+(``Renderer._shade_once``, or ``runner._place_and_shade`` before it existed; BSVs done, the
+renderer's own arguments) are called in turn
 ``--calls`` times each; the ratio of medians is the figure to quote. Shading only: the BSV stage is
 not timed.
 """
@@ -47,9 +48,12 @@ def shading_call(pkg: str, cfg: str):
     r = runner.Renderer(scene)
     r.frame(0)
     bsvs = jax.block_until_ready(r._bsvs(0.3))
-    args = (scene, bsvs, jnp.asarray(0.3, scene.receivers.points.dtype), r._lighting, True, r._shared_normal)
+    t = jnp.asarray(0.3, scene.receivers.points.dtype)
+    args = (scene, bsvs, t, r._lighting, True, r._shared_normal)
 
     def call():
+        if hasattr(r, "_shade_once"):  # the renderer's own one-call shading (since 2026-12-03)
+            return jax.block_until_ready(r._shade_once(bsvs, t))
         return jax.block_until_ready(runner._place_and_shade(*args))
 
     call()

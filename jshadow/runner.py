@@ -108,6 +108,45 @@ def _place_and_shade(scene, bsvs, t, lighting, analytic_spheres, shared_normal):
     return points, normals, e, rad
 
 
+_FLAT_SHADERS: dict = {}
+
+
+def _flat_shader(scene: Scene, lighting, analytic_spheres: bool, shared_normal: int):
+    """:func:`_place_and_shade` for one scene as ``(call, dynamic)``: ``call(dynamic, bsvs, t)`` is a
+    plain ``jax.jit`` function of the scene's and lighting's arrays (``dynamic``, a list flattened
+    once here) and of the frame's BSVs and time. ``eqx.filter_jit`` partitions, flattens and hashes
+    the whole scene on every call; that cost the airplane's shading about 0.4 of its 3 ms
+    (BENCHMARKS.md, "Rendering"). Same trace, same numbers. Scenes with the same structure and
+    static parts share one compiled function (a renderer per thread, or per test, compiles once).
+    Returns None if the static parts cannot be hashed (the caller then uses
+    :func:`_place_and_shade`)."""
+    leaves, tree = jax.tree_util.tree_flatten((scene, lighting))
+    mask = tuple(eqx.is_array(x) for x in leaves)
+    static = tuple(None if m else x for x, m in zip(leaves, mask, strict=True))
+    dynamic = [x for x, m in zip(leaves, mask, strict=True) if m]
+    key = (tree, static, bool(analytic_spheres), int(shared_normal))
+    try:
+        call = _FLAT_SHADERS.get(key)
+    except TypeError:  # an unhashable static leaf
+        return None
+    if call is None:
+
+        def run(dyn, bsvs, t):
+            it = iter(dyn)
+            full = [next(it) if m else x for x, m in zip(static, mask, strict=True)]
+            scn, light = jax.tree_util.tree_unflatten(tree, full)
+            points, normals = receivers_at_time(scn, t)
+            e, rad = _shade_piece(
+                _without_receivers(scn), bsvs, points, normals, light, analytic_spheres, shared_normal
+            )
+            return points, normals, e, rad
+
+        if len(_FLAT_SHADERS) >= 32:  # scenes are few per process; bound the cache anyway
+            _FLAT_SHADERS.clear()
+        call = _FLAT_SHADERS[key] = jax.jit(run)
+    return call, dynamic
+
+
 def _without_receivers(scene: Scene) -> Scene:
     """The scene minus its receiver arrays (the pieces bring their own; only the albedo is used)."""
     albedo = scene.receivers.albedo
@@ -163,6 +202,7 @@ class Renderer:
         self._receiver_count = jax.eval_shape(lambda: receivers_at_time(scene, 0.0))[0].shape[0]
         self._static_bsvs: dict[int, object] = {}
         self.bsv_computations = 0  # how many BSVs were actually sampled (tests check the reuse)
+        self._flat = None  # (analytic, _flat_shader(...)), built at the first one-call frame
 
     def _bsvs(self, t):
         out = []
@@ -176,6 +216,18 @@ class Renderer:
                 out.append(occluder_bsv(occ, t, self.scene, self.sphere_path, False))
                 self.bsv_computations += 1
         return tuple(out)
+
+    def _shade_once(self, bsvs, t):
+        """One call placing every receiver of the frame at time ``t`` (an array) and shading them."""
+        analytic = self.sphere_path == "analytic"
+        if self._flat is None or self._flat[0] != analytic:
+            flat = _flat_shader(self.scene, self._lighting, analytic, self._shared_normal)
+            self._flat = (analytic, flat)
+        flat = self._flat[1]
+        if flat is None:
+            return _place_and_shade(self.scene, bsvs, t, self._lighting, analytic, self._shared_normal)
+        call, dynamic = flat
+        return call(dynamic, bsvs, t)
 
     def piece_size(self, n: int) -> int:
         """Receivers per piece for a frame of n receivers (a multiple of the device count)."""
@@ -203,9 +255,7 @@ class Renderer:
         analytic = self.sphere_path == "analytic"
         n = self._receiver_count
         if not self.split_stages and self.mesh is None and n <= self.chunk:
-            points, normals, e, rad = jax.block_until_ready(
-                _place_and_shade(self.scene, bsvs, t_arr, self._lighting, analytic, self._shared_normal)
-            )
+            points, normals, e, rad = jax.block_until_ready(self._shade_once(bsvs, t_arr))
             t2 = time.perf_counter()
             res = RenderResult(points=points, normals=normals, irradiance=e, radiance=rad)
             times = {"bsv_ms": 1e3 * (t1 - t0), "shading_ms": 1e3 * (t2 - t1)}

@@ -6,11 +6,14 @@ import subprocess
 import sys
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
 import jshadow
+from jshadow import runner
 from jshadow.cli import main
+from jshadow.entities import frame_time
 from jshadow.runner import Renderer
 
 SCENE = """
@@ -97,14 +100,32 @@ def test_chunked_render_is_deterministic_and_agrees_with_one_piece(config_file):
         np.testing.assert_allclose(a[k], whole[k], rtol=0, atol=tol * np.abs(whole[k]).max())
 
 
+def _check_flat_call(rend, config_file, res):
+    """The renderer's one call (the scene's arrays flattened once, plain ``jax.jit``) computes
+    exactly what ``_place_and_shade`` (``eqx.filter_jit`` of the scene) does; a second renderer of an
+    equal scene reuses the compiled function; an unhashable static leaf falls back to the latter."""
+    scene = rend.scene
+    t = jnp.asarray(frame_time(1, scene.n_frames), scene.receivers.points.dtype)
+    ref = runner._place_and_shade(scene, rend._bsvs(t), t, rend._lighting, True, rend._shared_normal)
+    _assert_identical(_arrays(res, KEYS), dict(zip(KEYS, (np.asarray(x) for x in ref), strict=True)), KEYS)
+    again = Renderer(jshadow.build_scene(jshadow.load_config(config_file)))
+    again.frame(0)
+    assert again._flat[1][0] is rend._flat[1][0]
+    assert runner._flat_shader((bytearray(b"x"),), None, True, 0) is None
+
+
 def test_one_call_shading_equals_the_split_stages(config_file):
     """The default renderer shades a frame in one call (receivers, field, combination); with
     ``split_stages`` the same arithmetic runs as three calls: the same numbers (XLA may fuse the two
-    differently, so up to rounding), in one piece and in pieces, and the timings say which ran."""
+    differently, so up to rounding), in one piece and in pieces, and the timings say which ran;
+    the one call is the ``eqx.filter_jit`` one (:func:`_check_flat_call`)."""
     scene = jshadow.build_scene(jshadow.load_config(config_file))
     tol = 8 * float(np.finfo(np.float32).eps)
     for chunk in (None, 7):
-        one, t_one = Renderer(scene, chunk=chunk).frame(1)
+        rend = Renderer(scene, chunk=chunk)
+        one, t_one = rend.frame(1)
+        if chunk is None:
+            _check_flat_call(rend, config_file, one)
         split, t_split = Renderer(scene, chunk=chunk, split_stages=True).frame(1)
         a, b = _arrays(one, KEYS), _arrays(split, KEYS)
         _assert_identical(a, b, ("points", "normals"))
