@@ -22,6 +22,7 @@ __all__ = [
     "safe_atan2",
     "fast_atan2",
     "fast_acos",
+    "fast_sin",
     "safe_acos",
     "small_sum",
     "safe_norm",
@@ -126,6 +127,44 @@ def fast_acos(c: Float[ArrayLike, "..."]) -> Float[Array, "..."]:
     """
     c = jnp.clip(jnp.asarray(c), -1.0, 1.0)
     return fast_atan2(safe_sqrt(1.0 - c * c), c)
+
+
+# sin(x) on [−π/2, π/2] as x · Σ_i (−1)^i x^(2i)/(2i+1)!, i ≤ 6 (Taylor to x¹³: truncation below
+# 7e-10 at ±π/2, far under float32 rounding)
+_SIN_POLY = tuple((-1.0) ** i / float(np.prod(np.arange(1, 2 * i + 2))) for i in range(7))
+
+
+def _sin_poly(x: Array) -> Array:
+    r = jnp.where(x > 0.5 * np.pi, np.pi - x, jnp.where(x < -0.5 * np.pi, -np.pi - x, x))
+    s = r * r
+    p = jnp.asarray(_SIN_POLY[-1], r.dtype)
+    for c in _SIN_POLY[-2::-1]:
+        p = p * s + c
+    return p * r
+
+
+@jax.custom_jvp
+def fast_sin(x: Float[ArrayLike, "..."]) -> Float[Array, "..."]:
+    """sin(x) for x in [−π, π] (outside that range the result is wrong: reduce first).
+
+    float32 (and narrower) inputs use a polynomial after folding to [−π/2, π/2] (within 2.4e-7 of
+    float64 ``sin``, tests/test_numerics.py): XLA:CPU evaluates ``jnp.sin`` one element at a time,
+    about 20 ns each on the benchmark machine against 2 ns for a multiply-add pass. float64 inputs
+    use ``jnp.sin``. The derivative is cos x, from the same polynomial at π/2 − |x|.
+    """
+    x = jnp.asarray(x)
+    x = x.astype(jnp.result_type(x, float))
+    if jnp.finfo(x.dtype).bits > 32:
+        return jnp.sin(x)
+    return _sin_poly(x)
+
+
+@fast_sin.defjvp
+def _fast_sin_jvp(primals, tangents):
+    (x,), (dx,) = primals, tangents
+    x = jnp.asarray(x)
+    x = x.astype(jnp.result_type(x, float))
+    return fast_sin(x), fast_sin(0.5 * np.pi - jnp.abs(x)) * jnp.asarray(dx, x.dtype)
 
 
 def safe_acos(c: Float[ArrayLike, "..."]) -> Float[Array, "..."]:
