@@ -97,15 +97,17 @@ def _shade_piece(scene, bsvs, points, normals, lighting, analytic_spheres, share
 _shade = eqx.filter_jit(_shade_piece)
 
 
-@eqx.filter_jit
-def _place_and_shade(scene, bsvs, t, lighting, analytic_spheres, shared_normal):
-    """A whole frame's shading in one call: its receivers (:func:`receivers_at_time`), then
+def _place_and_shade_frame(scene, bsvs, t, lighting, analytic_spheres, shared_normal):
+    """A whole frame's shading: its receivers (:func:`receivers_at_time`), then
     :func:`_shade_piece` on all of them (traced on the scene without its receiver arrays, as the
     pieces of the split path are, so that both compile the same field and combination)."""
     points, normals = receivers_at_time(scene, t)
     light = _without_receivers(scene)
     e, rad = _shade_piece(light, bsvs, points, normals, lighting, analytic_spheres, shared_normal)
     return points, normals, e, rad
+
+
+_place_and_shade = eqx.filter_jit(_place_and_shade_frame)
 
 
 _FLAT_SHADERS: dict = {}
@@ -115,11 +117,11 @@ def _flat_shader(scene: Scene, lighting, analytic_spheres: bool, shared_normal: 
     """:func:`_place_and_shade` for one scene as ``(call, dynamic)``: ``call(dynamic, bsvs, t)`` is a
     plain ``jax.jit`` function of the scene's and lighting's arrays (``dynamic``, a list flattened
     once here) and of the frame's BSVs and time. ``eqx.filter_jit`` partitions, flattens and hashes
-    the whole scene on every call; that cost the airplane's shading about 0.4 of its 3 ms
-    (BENCHMARKS.md, "Rendering"). Same trace, same numbers. Scenes with the same structure and
-    static parts share one compiled function (a renderer per thread, or per test, compiles once).
-    Returns None if the static parts cannot be hashed (the caller then uses
-    :func:`_place_and_shade`)."""
+    the whole scene on every call: without that the six shipped configs shade in 0.86–0.91× the
+    time (the airplane 2.69 → 2.32 ms, BENCHMARKS.md, "Rendering"). Same trace, same numbers.
+    Scenes with the same structure and static parts share one compiled function (a renderer per
+    thread, or per test, compiles once). Returns None if the static parts cannot be hashed (the
+    caller then uses :func:`_place_and_shade`)."""
     leaves, tree = jax.tree_util.tree_flatten((scene, lighting))
     mask = tuple(eqx.is_array(x) for x in leaves)
     static = tuple(None if m else x for x, m in zip(leaves, mask, strict=True))
@@ -135,11 +137,7 @@ def _flat_shader(scene: Scene, lighting, analytic_spheres: bool, shared_normal: 
             it = iter(dyn)
             full = [next(it) if m else x for x, m in zip(static, mask, strict=True)]
             scn, light = jax.tree_util.tree_unflatten(tree, full)
-            points, normals = receivers_at_time(scn, t)
-            e, rad = _shade_piece(
-                _without_receivers(scn), bsvs, points, normals, light, analytic_spheres, shared_normal
-            )
-            return points, normals, e, rad
+            return _place_and_shade_frame(scn, bsvs, t, light, analytic_spheres, shared_normal)
 
         if len(_FLAT_SHADERS) >= 32:  # scenes are few per process; bound the cache anyway
             _FLAT_SHADERS.clear()
@@ -202,7 +200,7 @@ class Renderer:
         self._receiver_count = jax.eval_shape(lambda: receivers_at_time(scene, 0.0))[0].shape[0]
         self._static_bsvs: dict[int, object] = {}
         self.bsv_computations = 0  # how many BSVs were actually sampled (tests check the reuse)
-        self._flat = None  # (analytic, _flat_shader(...)), built at the first one-call frame
+        self._flat = None  # _flat_shader(...) (or ()), built at the first one-call frame
 
     def _bsvs(self, t):
         out = []
@@ -220,13 +218,11 @@ class Renderer:
     def _shade_once(self, bsvs, t):
         """One call placing every receiver of the frame at time ``t`` (an array) and shading them."""
         analytic = self.sphere_path == "analytic"
-        if self._flat is None or self._flat[0] != analytic:
-            flat = _flat_shader(self.scene, self._lighting, analytic, self._shared_normal)
-            self._flat = (analytic, flat)
-        flat = self._flat[1]
-        if flat is None:
+        if self._flat is None:  # () when the scene cannot be flattened into a hashable key
+            self._flat = _flat_shader(self.scene, self._lighting, analytic, self._shared_normal) or ()
+        if not self._flat:
             return _place_and_shade(self.scene, bsvs, t, self._lighting, analytic, self._shared_normal)
-        call, dynamic = flat
+        call, dynamic = self._flat
         return call(dynamic, bsvs, t)
 
     def piece_size(self, n: int) -> int:
