@@ -26,7 +26,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jshadow._numerics import fast_atan2, small_sum
+from jshadow._numerics import fast_atan2, fast_sin, small_sum
 from jshadow.lights import sphere_light_dot, sphere_light_sh
 from jshadow.scene import _env_rows
 from jshadow.sh import (
@@ -230,6 +230,8 @@ def main(argv=None) -> int:
         ("sh_product_t (coefficient axis first, inputs (16, N))", n_rec, sh_product_t, (a.T, b.T)),
         ("jnp.arctan2, float32 (comparison)", n_dirs, jnp.arctan2, (dirs[:, 1], dirs[:, 0])),
         ("fast_atan2, float32", n_dirs, fast_atan2, (dirs[:, 1], dirs[:, 0])),
+        ("jnp.sin on [-pi, pi], float32 (comparison)", n_rec, jnp.sin, (phi,)),
+        ("fast_sin on [-pi, pi], float32", n_rec, fast_sin, (phi,)),
         ("product_matrix (n=4)", n_rec, product_matrix, (a,)),
         ("cap (n=4)", n_rec, lambda ax, t: cap(ax, t, N), (axes, cos_a)),
         # distances of receivers (norm over an axis of 3) and a sphere light's <cap, w> (combination)

@@ -148,9 +148,10 @@ def fast_sin(x: Float[ArrayLike, "..."]) -> Float[Array, "..."]:
     """sin(x) for x in [−π, π] (outside that range the result is wrong: reduce first).
 
     float32 (and narrower) inputs use a polynomial after folding to [−π/2, π/2] (within 2.4e-7 of
-    float64 ``sin``, tests/test_numerics.py): XLA:CPU evaluates ``jnp.sin`` one element at a time,
-    about 20 ns each on the benchmark machine against 2 ns for a multiply-add pass. float64 inputs
-    use ``jnp.sin``. The derivative is cos x, from the same polynomial at π/2 − |x|.
+    float64 ``sin``, tests/test_numerics.py). XLA:CPU's ``jnp.sin`` is several times slower:
+    ``benchmarks/bench_sh.py``'s rows for 1e5 values measured 0.43–0.46 ms against 0.07–0.20 ms
+    (BENCHMARKS.md). float64 inputs use ``jnp.sin``. The derivative is cos x, from the same
+    polynomial at π/2 − |x|.
     """
     x = jnp.asarray(x)
     x = x.astype(jnp.result_type(x, float))

@@ -118,7 +118,7 @@ def test_one_call_shading_equals_the_split_stages(config_file):
     """The default renderer shades a frame in one call (receivers, field, combination); with
     ``split_stages`` the same arithmetic runs as three calls: the same numbers (XLA may fuse the two
     differently, so up to rounding), in one piece and in pieces, and the timings say which ran;
-    the one call is the ``eqx.filter_jit`` one (:func:`_check_flat_call`)."""
+    the one call computes exactly what the ``eqx.filter_jit`` call does (:func:`_check_flat_call`)."""
     scene = jshadow.build_scene(jshadow.load_config(config_file))
     tol = 8 * float(np.finfo(np.float32).eps)
     for chunk in (None, 7):

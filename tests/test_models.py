@@ -273,8 +273,8 @@ def test_sphere_light_blocked_float32_against_exact():
     g = np.arctan2(np.linalg.norm(np.cross(dirs[0], dirs[1]), axis=-1), np.sum(dirs[0] * dirs[1], -1))
     want = _np_cap_overlap(a, b, g) / (2 * np.pi * (1 - np.cos(b)))
     assert 0.2 < np.mean((want > 1e-3) & (want < 0.999)) < 0.9  # partial overlaps are well represented
-    # the half-angle / L'Huilier form has no cancellation: 8.2e-6 worst on 20000 such pairs (the
-    # acos form of the same area was 5e-3 off in float32 there, and 4e-3 in float64 with its flat lens)
+    # the half-angle / Cagnoli form has no cancellation: 1.4e-5 worst on 20000 such pairs (the acos
+    # form of the same area was 5e-3 off in float32 there, and 4e-3 in float64 with its flat lens)
     np.testing.assert_allclose(np.asarray(got), want, atol=5e-5)
 
 
