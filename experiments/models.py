@@ -17,9 +17,10 @@ that method and of the options :class:`jshadow.entities.Method` offers beyond it
 Scenes: the two calibration scenes of DESIGN.md §2 (bunny and a BSV-path sphere under a constant
 sky), every shipped render config (receiver plane reduced to ``--res``²; bunny_studio keeps its
 self-shadowed vertices, reported separately) and scenes no option was tuned on (other meshes,
-deformations, sphere lights, several occluders). References are Monte Carlo (:func:`jshadow.reference`,
-exact visibility; projected spherical caps for sphere lights) with spp raised until the reference's
-RMS standard error is at most ``--target`` of the mean irradiance; they are cached in
+deformations, sphere lights, several occluders, self-shadowing under a constant sky). References
+are Monte Carlo (:func:`jshadow.reference`, exact visibility; projected spherical caps for sphere
+lights) with spp raised until the reference's RMS standard error is at most ``--target`` of the
+mean irradiance; they are cached in
 ``experiments/results/refs/`` (delete a file to recompute it). The sphere calibration uses its
 closed form instead.
 
@@ -113,13 +114,14 @@ def _mesh(file: str, center, radius, deform=None) -> MeshOccluder:
     )
 
 
-def _scene(method: dict, occluders, lights=(), env=None, res=32, n_frames=1) -> Scene:
+def _scene(method: dict, occluders, lights=(), env=None, res=32, n_frames=1, self_shadow=False) -> Scene:
     return Scene(
         method=Method(**method),
         receivers=_plane(res),
         occluders=tuple(occluders),
         lights=tuple(lights),
         environment=env,
+        self_shadow=self_shadow,
         n_frames=n_frames,
     )
 
@@ -190,6 +192,13 @@ def _cases():
                 env=_sky("sky"),
                 res=r,
             ),
+            0,
+            "analytic",
+            False,
+        ),
+        # self-shadowing under smooth lighting: the bunny's own 1901 vertices are receivers too
+        "bunny_self_sky": (
+            lambda m, r: _scene(m, [_mesh("bunny.obj", (0, 1, 0), 0.8)], env=_sky(), res=r, self_shadow=True),
             0,
             "analytic",
             False,
