@@ -203,6 +203,19 @@ def _cases():
             "analytic",
             False,
         ),
+        # the same, twisted (a constant deformation: the shape differs from the rest pose)
+        "bunny_self_sky_twist": (
+            lambda m, r: _scene(
+                m,
+                [_mesh("bunny.obj", (0, 1, 0), 0.8, make_deformation("twist", 1.2, axis="y"))],
+                env=_sky(),
+                res=r,
+                self_shadow=True,
+            ),
+            0,
+            "analytic",
+            False,
+        ),
         "three_occluders": (
             lambda m, r: _scene(
                 m,

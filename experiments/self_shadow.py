@@ -7,14 +7,16 @@ default's self-shadowing error was 24 % relative RMSE on the studio bunny's vert
 (if the inward expansion is the limit), the lighting bands (if the band limit of sharp lighting is),
 or the model itself. This script renders two scenes of ``experiments/models.py`` with the bunny's
 1901 vertices as receivers besides a 32² plane — ``bunny_studio`` (the shipped config, studio HDR
-map) and ``bunny_self_sky`` (the calibration bunny under a constant sky) — with the default method
-at several shell radii and band counts, and once more with the field's rows at the bunny's own
-vertices replaced by a direct computation: each vertex's visibility of the mesh by rays
+map), ``bunny_self_sky`` (the calibration bunny under a constant sky) and ``bunny_self_sky_twist``
+(the same bunny twisted by 1.2 rad about its vertical axis) — with the default method at several
+shell radii and band counts, and once more with the field's rows at the bunny's own vertices
+replaced by a direct computation: each vertex's visibility of the mesh by rays
 (:func:`jshadow.visibility.ray_fan_any_hit` on a 24 × 48 Gauss–Legendre × uniform sphere grid; an
 origin on the surface ignores its own faces) projected to the lighting's bands, then the same
-combination. Errors are against the cached Monte Carlo references
-(``experiments/results/refs/<case>.npz``; ``models.py --cases <case>`` computes a missing one), for
-the vertices and the plane separately.
+combination. For the twisted bunny also with that visibility cast on the *rest* pose, as it is and
+rotated by each vertex's tangent-frame change: can a deforming mesh reuse one precomputation?
+Errors are against the cached Monte Carlo references (``experiments/results/refs/<case>.npz``;
+``models.py --cases <case>`` computes a missing one), for the vertices and the plane separately.
 
 Usage (repository root, project environment active)::
 
@@ -54,14 +56,36 @@ SETTINGS = [
 RAY_GRID = (24, 48)
 
 
-def vertex_rays(scene, n_plane: int):
+def _frames(v, normals, faces):
+    """(V, 3, 3) orthonormal frames [tangent, bitangent, normal] as columns: the tangent is each
+    vertex's first incident edge in face order, made orthogonal to the normal."""
+    f = np.asarray(faces)
+    first = np.full(v.shape[0], -1)
+    for a, b in ((0, 1), (1, 2), (2, 0)):
+        todo = first[f[:, a]] < 0
+        first[f[todo, a]] = f[todo, b]
+    e = v[jnp.asarray(first)] - v
+    t = e - jnp.sum(e * normals, -1, keepdims=True) * normals
+    t = t / jnp.linalg.norm(t, axis=-1, keepdims=True)
+    return jnp.stack([t, jnp.cross(normals, t), normals], -1)
+
+
+def vertex_rays(scene, n_plane: int, pose: str = "current"):
     """Irradiance with the first occluder's field replaced by ray-cast visibility at its vertices,
-    and the warm seconds of the ray cast and projection (compiled once beforehand)."""
+    and the warm seconds of the ray cast and projection (compiled once beforehand).
+
+    ``pose``: "current" casts from the frame's own vertices against the frame's mesh; "rest" uses
+    the visibility cast on the undeformed mesh as it is; "rest, rotated" rotates it by each vertex's
+    frame change (rest → current tangent frame), as a deforming mesh could reuse a rest-pose
+    precomputation."""
+    from jshadow.geometry import vertex_normals
+
     t = jnp.float32(0.0)
     pts, nrm = receivers_at_time(scene, t)
     vis, dist = occluder_visibilities(scene, scene_bsvs(scene, t), pts)
     occ = scene.occluders[0]
-    v, f = occ.vertices(t), jnp.asarray(occ.faces)
+    f = jnp.asarray(occ.faces)
+    v = occ.vertices(t) if pose == "current" else occ.center + occ.radius * occ.unit_vertices
     dirs, w = sh.sphere_grid(*RAY_GRID, jnp.float32)
     n = scene.method.sh_bands
 
@@ -69,10 +93,14 @@ def vertex_rays(scene, n_plane: int):
     def own(o):
         return sh.project((~ray_fan_any_hit(o, dirs, v, f)).astype(jnp.float32), dirs, w, n)
 
-    own(pts[n_plane:]).block_until_ready()
+    own(v).block_until_ready()
     t0 = time.perf_counter()
-    vv = own(pts[n_plane:]).block_until_ready()
+    vv = own(v).block_until_ready()
     secs = time.perf_counter() - t0
+    if pose == "rest, rotated":
+        rest = _frames(v, vertex_normals(v, f), occ.faces)
+        now = _frames(pts[n_plane:], nrm[n_plane:], occ.faces)
+        vv = sh.rotate(vv, now @ jnp.swapaxes(rest, -1, -2))
     vis = [vis[0].at[n_plane:].set(vv), *vis[1:]]
     e = combine(scene, pts, nrm, vis, dist, scene_lighting(scene), True, n_plane)
     return np.asarray(e, np.float64), secs
@@ -80,7 +108,7 @@ def vertex_rays(scene, n_plane: int):
 
 def main() -> None:
     results = {"ray_grid": list(RAY_GRID)}
-    for case in ("bunny_studio", "bunny_self_sky"):
+    for case in ("bunny_studio", "bunny_self_sky", "bunny_self_sky_twist"):
         build, frame, sphere_path, _ = models._cases()[case]
         base = build(models.VARIANTS["paper"], 32)
         ref = models.reference(case, base, frame, 1e-3, 32768)
@@ -88,11 +116,14 @@ def main() -> None:
         rows = []
         default = dict(models.VARIANTS[models.DEFAULT_VARIANT])
         runs = [(label, dict(default, **keys), None) for label, keys in SETTINGS]
-        runs.append(("default, rays at the own vertices", default, "rays"))
+        runs.append(("default, rays at the own vertices", default, "current"))
+        if base.occluders[0].deform is not None:
+            runs.append(("default, rays at the rest pose", default, "rest"))
+            runs.append(("default, rays at the rest pose, rotated", default, "rest, rotated"))
         for label, method, kind in runs:
             scene = build(method, 32)
-            if kind == "rays":
-                approx, secs = vertex_rays(scene, n_plane)
+            if kind is not None:
+                approx, secs = vertex_rays(scene, n_plane, kind)
                 timing = {"ray_cast_ms": 1e3 * secs}
             else:
                 approx, _, warm = models.timed(scene, frame, sphere_path, runs=3)
