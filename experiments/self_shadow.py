@@ -5,7 +5,7 @@ shell's visibility inward (k = R/d > 1) — a model made for receivers outside t
 default's self-shadowing error was 24 % relative RMSE on the studio bunny's vertices
 (BENCHMARKS.md, "Accuracy beyond the paper"). Candidates: the shell radius and the visibility bands
 (if the inward expansion is the limit), the lighting bands (if the band limit of sharp lighting is),
-or the model itself. This script renders two scenes of ``experiments/models.py`` with the bunny's
+or the model itself. This script renders three scenes of ``experiments/models.py`` with the bunny's
 1901 vertices as receivers besides a 32² plane — ``bunny_studio`` (the shipped config, studio HDR
 map), ``bunny_self_sky`` (the calibration bunny under a constant sky) and ``bunny_self_sky_twist``
 (the same bunny twisted by 1.2 rad about its vertical axis) — with the default method at several
