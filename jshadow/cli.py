@@ -201,6 +201,7 @@ def cmd_render(args) -> int:
         "first_frame_ms": frames[0].get("first_call", frames[0])["total_ms"],
         "median_ms": {k: float(np.median([fr[k] for fr in warm])) for k in warm[0] if k.endswith("_ms")},
         "bsv_computations": renderer.bsv_computations,
+        "self_visibility_computations": renderer.self_visibility_computations,
         "wall_s_including_pictures": wall,
         "per_frame": frames,
     }
@@ -214,9 +215,11 @@ def cmd_render(args) -> int:
         )
     m = summary["median_ms"]
     split = f" = field {m['field_ms']:.1f} + combine {m['combine_ms']:.1f}" if "field_ms" in m else ""
+    own = f", own-vertex rays {m['self_visibility_ms']:.1f}" if "self_visibility_ms" in m else ""
     print(
         f"rendered {len(frames)} frame(s), {summary['receivers']} receivers -> {out}  "
-        f"(warm median {m['total_ms']:.1f} ms/frame: BSV {m['bsv_ms']:.1f}, shading {m['shading_ms']:.1f}"
+        f"(warm median {m['total_ms']:.1f} ms/frame: BSV {m['bsv_ms']:.1f}{own}, "
+        f"shading {m['shading_ms']:.1f}"
         f"{split}; first frame incl. compile {summary['first_frame_ms']:.0f} ms)"
     )
     return 0

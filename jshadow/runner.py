@@ -4,7 +4,8 @@
 computation as two compiled calls per frame — the BSVs, then the shading (placing the frame's
 receivers, field evaluation and combination in one call) — and skips work the animation does not
 need: an occluder whose shape does not change over time (no deformation, or a deformation whose
-amount is the same at every frame) has its BSV computed once and reused for every frame.
+amount is the same at every frame) has its BSV computed once and reused for every frame, and so has
+its ray-cast visibility at its own vertices (``[method] self_visibility = "rays"``).
 ``split_stages=True`` runs the shading as three calls instead (receivers, field, combination) so
 that each can be timed; the one-call shading is faster (fewer dispatches and synchronisations, and
 XLA schedules the stages together: the animated bunny's shading 1.99 ms against 2.57 ms split,
@@ -42,9 +43,13 @@ from .scene import (
     RenderResult,
     combine,
     occluder_bsv,
+    occluder_own_visibility,
     occluder_visibilities,
     scene_lighting,
+    self_visibility_owners,
+    self_visibility_rows,
     shared_normal_count,
+    uses_self_rays,
 )
 
 __all__ = ["Renderer", "shape_is_static", "render_frames", "DEFAULT_CHUNK"]
@@ -72,8 +77,8 @@ def _receivers(scene, t):
 
 
 @eqx.filter_jit
-def _fields(scene, bsvs, points):
-    vis, dist = occluder_visibilities(scene, bsvs, points)
+def _fields(scene, bsvs, points, own=None):
+    vis, dist = occluder_visibilities(scene, bsvs, points, own)
     # one (m, N, n²) array across the jit boundary, not m separate ones: the product chain in _combine
     # stacks them again (measured with 16 occluders: combination 49 -> 44 ms, BENCHMARKS.md)
     return (jnp.stack(vis), jnp.stack(dist)) if vis else (vis, dist)
@@ -88,22 +93,23 @@ def _combine_piece(scene, points, normals, vis, dist, lighting, analytic_spheres
 _combine = eqx.filter_jit(_combine_piece)
 
 
-def _shade_piece(scene, bsvs, points, normals, lighting, analytic_spheres, shared_normal):
-    """Field evaluation and combination of one piece of receivers, traced together."""
-    vis, dist = occluder_visibilities(scene, bsvs, points)
+def _shade_piece(scene, bsvs, points, normals, lighting, analytic_spheres, shared_normal, own=None):
+    """Field evaluation and combination of one piece of receivers, traced together (``own``: the
+    piece's rows of the ray-cast own-vertex visibility, see :func:`jshadow.scene.occluder_visibilities`)."""
+    vis, dist = occluder_visibilities(scene, bsvs, points, own)
     return _combine_piece(scene, points, normals, vis, dist, lighting, analytic_spheres, shared_normal)
 
 
 _shade = eqx.filter_jit(_shade_piece)
 
 
-def _place_and_shade_frame(scene, bsvs, t, lighting, analytic_spheres, shared_normal):
+def _place_and_shade_frame(scene, bsvs, t, lighting, analytic_spheres, shared_normal, own=None):
     """A whole frame's shading: its receivers (:func:`receivers_at_time`), then
     :func:`_shade_piece` on all of them (traced on the scene without its receiver arrays, as the
     pieces of the split path are, so that both compile the same field and combination)."""
     points, normals = receivers_at_time(scene, t)
     light = _without_receivers(scene)
-    e, rad = _shade_piece(light, bsvs, points, normals, lighting, analytic_spheres, shared_normal)
+    e, rad = _shade_piece(light, bsvs, points, normals, lighting, analytic_spheres, shared_normal, own)
     return points, normals, e, rad
 
 
@@ -114,14 +120,15 @@ _FLAT_SHADERS: dict = {}
 
 
 def _flat_shader(scene: Scene, lighting, analytic_spheres: bool, shared_normal: int):
-    """:func:`_place_and_shade` for one scene as ``(call, dynamic)``: ``call(dynamic, bsvs, t)`` is a
+    """:func:`_place_and_shade` for one scene as ``(call, dynamic)``: ``call(dynamic, bsvs, t, own)`` is a
     plain ``jax.jit`` function of the scene's and lighting's arrays (``dynamic``, a list flattened
     once here) and of the frame's BSVs and time. ``eqx.filter_jit`` partitions, flattens and hashes
     the whole scene on every call: without that the six shipped configs shade in 0.86–0.91× the
     time (the airplane 2.69 → 2.32 ms, BENCHMARKS.md, "Rendering"). Same trace, same numbers.
     Scenes with the same structure and static parts share one compiled function (a renderer per
-    thread, or per test, compiles once). Returns None if the static parts cannot be hashed (the
-    caller then uses :func:`_place_and_shade`)."""
+    thread, or per test, compiles once); ``own`` is the frame's ray-cast own-vertex visibility or
+    None. Returns None if the static parts cannot be hashed (the caller then uses
+    :func:`_place_and_shade`)."""
     leaves, tree = jax.tree_util.tree_flatten((scene, lighting))
     mask = tuple(eqx.is_array(x) for x in leaves)
     static = tuple(None if m else x for x, m in zip(leaves, mask, strict=True))
@@ -133,11 +140,11 @@ def _flat_shader(scene: Scene, lighting, analytic_spheres: bool, shared_normal: 
         return None
     if call is None:
 
-        def run(dyn, bsvs, t):
+        def run(dyn, bsvs, t, own):
             it = iter(dyn)
             full = [next(it) if m else x for x, m in zip(static, mask, strict=True)]
             scn, light = jax.tree_util.tree_unflatten(tree, full)
-            return _place_and_shade_frame(scn, bsvs, t, light, analytic_spheres, shared_normal)
+            return _place_and_shade_frame(scn, bsvs, t, light, analytic_spheres, shared_normal, own)
 
         if len(_FLAT_SHADERS) >= 32:  # scenes are few per process; bound the cache anyway
             _FLAT_SHADERS.clear()
@@ -200,6 +207,12 @@ class Renderer:
         self._receiver_count = jax.eval_shape(lambda: receivers_at_time(scene, 0.0))[0].shape[0]
         self._static_bsvs: dict[int, object] = {}
         self.bsv_computations = 0  # how many BSVs were actually sampled (tests check the reuse)
+        # method.self_visibility = "rays": the own-vertex rows' owners (constant), the cast per occluder
+        # for shapes that do not change, and how many casts ran (tests check the reuse)
+        self._owners = jnp.asarray(self_visibility_owners(scene)) if uses_self_rays(scene) else None
+        self._static_own: dict[int, object] = {}
+        self._static_rows = None  # all of them, when no mesh occluder deforms
+        self.self_visibility_computations = 0
         self._flat = None  # _flat_shader(...) (or ()), built at the first one-call frame
 
     def _bsvs(self, t):
@@ -215,15 +228,39 @@ class Renderer:
                 self.bsv_computations += 1
         return tuple(out)
 
-    def _shade_once(self, bsvs, t):
+    def _own(self, t):
+        """The frame's ray-cast own-vertex visibility ``(rows, owners)`` (None unless the scene uses
+        it): cast once for an occluder whose shape does not change, every frame for one that does."""
+        if self._owners is None:
+            return None
+        if self._static_rows is not None:
+            return self._static_rows, self._owners
+        own = []
+        for i, occ in enumerate(self.scene.occluders):
+            if not isinstance(occ, MeshOccluder):
+                continue
+            if shape_is_static(occ) and i in self._static_own:
+                own.append(self._static_own[i])
+                continue
+            v = occluder_own_visibility(occ, 0.0 if shape_is_static(occ) else t, self.scene)
+            self.self_visibility_computations += 1
+            if shape_is_static(occ):
+                self._static_own[i] = v
+            own.append(v)
+        rows = self_visibility_rows(self.scene, own)
+        if all(shape_is_static(o) for o in self.scene.occluders if isinstance(o, MeshOccluder)):
+            self._static_rows = rows
+        return rows, self._owners
+
+    def _shade_once(self, bsvs, t, own):
         """One call placing every receiver of the frame at time ``t`` (an array) and shading them."""
         analytic = self.sphere_path == "analytic"
         if self._flat is None:  # () when the scene cannot be flattened into a hashable key
             self._flat = _flat_shader(self.scene, self._lighting, analytic, self._shared_normal) or ()
         if not self._flat:
-            return _place_and_shade(self.scene, bsvs, t, self._lighting, analytic, self._shared_normal)
+            return _place_and_shade(self.scene, bsvs, t, self._lighting, analytic, self._shared_normal, own)
         call, dynamic = self._flat
-        return call(dynamic, bsvs, t)
+        return call(dynamic, bsvs, t, own)
 
     def piece_size(self, n: int) -> int:
         """Receivers per piece for a frame of n receivers (a multiple of the device count)."""
@@ -237,7 +274,9 @@ class Renderer:
         """Render one frame; returns the result and its timings in milliseconds.
 
         ``bsv_ms``: the BSVs; ``shading_ms``: placing the frame's receivers, field evaluation and
-        combination; ``total_ms``: both. With ``split_stages`` also ``field_ms`` (including placing
+        combination; ``total_ms``: all stages. With ``method.self_visibility = "rays"`` also
+        ``self_visibility_ms``: casting the occluders' own-vertex visibility (0 after the first
+        frame for shapes that do not change). With ``split_stages`` also ``field_ms`` (including placing
         the receivers) and ``combine_ms``, whose sum is ``shading_ms``. With several pieces the
         shading times are summed over the pieces.
         """
@@ -246,16 +285,21 @@ class Renderer:
         t = frame_time(frame, self.scene.n_frames)
         t0 = time.perf_counter()
         bsvs = jax.block_until_ready(self._bsvs(t))
+        t_own = time.perf_counter()
+        own = jax.block_until_ready(self._own(t))
         t1 = time.perf_counter()
+        first = {"bsv_ms": 1e3 * (t_own - t0)}
+        if own is not None:
+            first["self_visibility_ms"] = 1e3 * (t1 - t_own)
         t_arr = jnp.asarray(t, self.scene.receivers.points.dtype)  # traced: one compilation for all frames
         analytic = self.sphere_path == "analytic"
         n = self._receiver_count
         if not self.split_stages and self.mesh is None and n <= self.chunk:
-            points, normals, e, rad = jax.block_until_ready(self._shade_once(bsvs, t_arr))
+            points, normals, e, rad = jax.block_until_ready(self._shade_once(bsvs, t_arr, own))
             t2 = time.perf_counter()
             res = RenderResult(points=points, normals=normals, irradiance=e, radiance=rad)
-            times = {"bsv_ms": 1e3 * (t1 - t0), "shading_ms": 1e3 * (t2 - t1)}
-            times["total_ms"] = times["bsv_ms"] + times["shading_ms"]
+            times = {**first, "shading_ms": 1e3 * (t2 - t1)}
+            times["total_ms"] = sum(times.values())
             return res, times
         points, normals = jax.block_until_ready(_receivers(self.scene, t_arr))
         size = self.piece_size(n)
@@ -269,19 +313,27 @@ class Renderer:
         for s in bar:
             p = _parallel.pad_rows(points[s : s + size], size) if (s, size) != (0, n) else points
             q = _parallel.pad_rows(normals[s : s + size], size) if (s, size) != (0, n) else normals
+            o = None
+            if own is not None:
+                o = (
+                    own
+                    if (s, size) == (0, n)
+                    else tuple(_parallel.pad_rows(x[s : s + size], size) for x in own)
+                )
             if self.mesh is not None:
                 p, q = _parallel.shard_rows(p, self.mesh), _parallel.shard_rows(q, self.mesh)
+                o = None if o is None else tuple(_parallel.shard_rows(x, self.mesh) for x in o)
             shared = min(max(self._shared_normal - s, 0), size)
             ta = time.perf_counter()
             if self.split_stages:
-                vis, dist = jax.block_until_ready(_fields(self._light, bsvs, p))
+                vis, dist = jax.block_until_ready(_fields(self._light, bsvs, p, o))
                 tb = time.perf_counter()
                 e, rad = jax.block_until_ready(
                     _combine(self._light, p, q, vis, dist, self._lighting, analytic, shared)
                 )
             else:
                 e, rad = jax.block_until_ready(
-                    _shade(self._light, bsvs, p, q, self._lighting, analytic, shared)
+                    _shade(self._light, bsvs, p, q, self._lighting, analytic, shared, o)
                 )
                 tb = time.perf_counter()
             tc = time.perf_counter()
@@ -297,10 +349,10 @@ class Renderer:
             e = jnp.asarray(np.concatenate([np.asarray(x) for x in e_parts]))
             rad = jnp.asarray(np.concatenate([np.asarray(x) for x in r_parts]))
         res = RenderResult(points=points, normals=normals, irradiance=e, radiance=rad)
-        times = {"bsv_ms": 1e3 * (t1 - t0), "shading_ms": 1e3 * (field_s + combine_s)}
+        times = {**first, "shading_ms": 1e3 * (field_s + combine_s)}
+        times["total_ms"] = sum(times.values())
         if self.split_stages:
             times |= {"field_ms": 1e3 * field_s, "combine_ms": 1e3 * combine_s}
-        times["total_ms"] = times["bsv_ms"] + times["shading_ms"]
         return res, times
 
 

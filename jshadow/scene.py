@@ -55,6 +55,7 @@ from .visibility import (
     edgescan_grad_slots,
     edgescan_slots,
     is_closed_manifold,
+    vertex_visibility_sh,
 )
 
 __all__ = [
@@ -64,6 +65,10 @@ __all__ = [
     "occluder_bsv",
     "mesh_bsv",
     "occluder_visibilities",
+    "uses_self_rays",
+    "self_visibility_owners",
+    "occluder_own_visibility",
+    "self_visibility_rows",
     "Lighting",
     "scene_lighting",
     "combine",
@@ -204,9 +209,9 @@ TRACED_FACES = (
 )
 
 
-def _traced_faces_guard(forward, v):
-    """``forward(v)``, raising :data:`TRACED_FACES` if it is differentiated (instead of a zero
-    derivative through binary visibility)."""
+def _traced_faces_guard(forward, v, message: str = TRACED_FACES):
+    """``forward(v)``, raising ``message`` (default :data:`TRACED_FACES`) if it is differentiated
+    with respect to ``v`` (instead of a zero derivative through binary visibility)."""
 
     @jax.custom_jvp
     def guarded(x):
@@ -214,7 +219,7 @@ def _traced_faces_guard(forward, v):
 
     @guarded.defjvp
     def _jvp(primals, tangents):
-        raise ValueError(TRACED_FACES)
+        raise ValueError(message)
 
     return guarded(v)
 
@@ -328,13 +333,83 @@ def _image_grad_slots(occ: MeshOccluder, faces: np.ndarray, m, lazy: bool = Fals
     return _cached_slots("image", occ, faces, m, measure, _merge_max, None, lazy=lazy)
 
 
+SELF_RAYS_NO_DERIVATIVE = (
+    "method.self_visibility = 'rays' casts binary visibility from the occluders' own vertices, which "
+    "has no derivative with respect to those vertices: differentiate with self_visibility = 'field' "
+    "(or without self_shadow)"
+)
+
+
+def uses_self_rays(scene: Scene) -> bool:
+    """Whether the scene's own-vertex visibility is cast by rays (``self_shadow`` with
+    ``method.self_visibility = "rays"`` and at least one mesh occluder)."""
+    return (
+        scene.self_shadow
+        and scene.method.self_visibility == "rays"
+        and any(isinstance(o, MeshOccluder) for o in scene.occluders)
+    )
+
+
+def self_visibility_owners(scene: Scene) -> np.ndarray:
+    """(N,) int32 over the receivers of :func:`jshadow.entities.receivers_at_time` (``self_shadow``
+    order: the plane's rows, then each mesh occluder's vertices): the index in ``scene.occluders``
+    of the occluder whose own vertex the receiver is, −1 for the plane's receivers."""
+    rows = [np.full(scene.receivers.points.shape[0], -1, np.int32)]
+    for i, occ in enumerate(scene.occluders):
+        if isinstance(occ, MeshOccluder):
+            rows.append(np.full(occ.unit_vertices.shape[0], i, np.int32))
+    return np.concatenate(rows)
+
+
+def occluder_own_visibility(occ: MeshOccluder, t, scene: Scene) -> Float[Array, "V n2"]:
+    """(V, n²) visibility of a mesh occluder at its own vertices at time t, by rays
+    (:func:`jshadow.visibility.vertex_visibility_sh` with ``method.self_visibility_grid``).
+
+    Differentiating it with respect to the vertices (their deformation, offsets, position) raises
+    :data:`SELF_RAYS_NO_DERIVATIVE`: binary visibility has no derivative to give.
+    """
+    m = scene.method
+    v = _vertices_at(occ, jnp.asarray(t, occ.unit_vertices.dtype))
+    faces = occ.faces
+
+    def forward(x):
+        return vertex_visibility_sh(x, faces, m.sh_bands, tuple(m.self_visibility_grid))
+
+    return _traced_faces_guard(forward, v, SELF_RAYS_NO_DERIVATIVE)
+
+
+def self_visibility_rows(scene: Scene, own: list) -> Float[Array, "N n2"]:
+    """(N, n²) rows over all receivers: each mesh occluder's ``own`` visibility (in the order of
+    the mesh occluders) at its vertices' rows, zeros at the plane's (see :func:`self_visibility_owners`)."""
+    n2 = scene.method.sh_bands**2
+    plane = jnp.zeros((scene.receivers.points.shape[0], n2), scene.dtype)
+    return jnp.concatenate([plane, *(o.astype(scene.dtype) for o in own)], 0)
+
+
+def own_rows_at_time(scene: Scene, t) -> tuple[Float[Array, "N n2"], Array] | None:
+    """``(rows, owners)`` of the scene's ray-cast own-vertex visibility at time t
+    (:func:`self_visibility_rows`, :func:`self_visibility_owners`), or None when the scene does
+    not use them (:func:`uses_self_rays`)."""
+    if not uses_self_rays(scene):
+        return None
+    own = [occluder_own_visibility(o, t, scene) for o in scene.occluders if isinstance(o, MeshOccluder)]
+    return self_visibility_rows(scene, own), jnp.asarray(self_visibility_owners(scene))
+
+
 def occluder_visibilities(
-    scene: Scene, bsvs: tuple[BSV | None, ...], points: Float[Array, "N 3"]
+    scene: Scene,
+    bsvs: tuple[BSV | None, ...],
+    points: Float[Array, "N 3"],
+    own: tuple[Float[Array, "N n2"], Array] | None = None,
 ) -> tuple[list, list]:
     """Visibility SH (N, n²) and distance (N,) from each receiver to each occluder's centre.
 
     BSV occluders whose coefficient arrays have the same shape are evaluated together under one
     ``lax.map`` (one compiled computation however many occluders there are).
+
+    ``own``: None, or ``(rows, owners)`` — (N, n²) and (N,) int — from :func:`own_rows_at_time`
+    (or a piece of them, sliced like ``points``): receiver r's visibility of occluder
+    ``owners[r]`` is ``rows[r]`` instead of the field's (``self_visibility = "rays"``).
     """
     n = scene.method.sh_bands
     table = occlusion_table(scene) if any(b is not None for b in bsvs) else None
@@ -357,6 +432,11 @@ def occluder_visibilities(
         vs, ds = jax.lax.map(lambda b: bsv_visibility_and_distance(b, table, points, n), stacked)
         for j, i in enumerate(idx):
             vis[i], dist[i] = vs[j], ds[j]
+    if own is not None:
+        rows, owners = own
+        for i, occ in enumerate(scene.occluders):
+            if isinstance(occ, MeshOccluder):
+                vis[i] = jnp.where((owners == i)[:, None], rows.astype(vis[i].dtype), vis[i])
     return vis, dist
 
 
@@ -636,7 +716,7 @@ def render_at(scene: Scene, t, bsvs: tuple[BSV | None, ...] | None = None, spher
     if bsvs is None:
         bsvs = scene_bsvs(scene, t, sphere_path)
     points, normals = receivers_at_time(scene, t)
-    vis, dist = occluder_visibilities(scene, bsvs, points)
+    vis, dist = occluder_visibilities(scene, bsvs, points, own_rows_at_time(scene, t))
     shared = shared_normal_count(scene.receivers.normals)  # the plane's receivers lead `points`
     e = combine(
         scene, points, normals, vis, dist, analytic_spheres=sphere_path == "analytic", shared_normal=shared
@@ -651,5 +731,8 @@ def render(scene: Scene, frame: int = 0, sphere_path: str = "analytic") -> Rende
     Differentiable with respect to the scene's array leaves (light and occluder positions, radii,
     radiance, deformation amounts — but see the visibility module about gradients through binary
     visibility). Receivers are those of :func:`jshadow.entities.receivers_at`, in the same order.
+    With ``self_shadow`` and ``method.self_visibility = "rays"`` every call casts the occluders'
+    own-vertex visibility (seconds for a 2k-vertex mesh; :class:`jshadow.Renderer` reuses it for
+    shapes that do not change) and is not differentiable with respect to their vertices.
     """
     return render_at(scene, frame_time(frame, scene.n_frames), sphere_path=sphere_path)

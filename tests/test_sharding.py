@@ -31,8 +31,10 @@ SCRIPT = textwrap.dedent(
     from jshadow.config import config_from_dict
     from jshadow.runner import Renderer, _fields, render_frames
 
-    cfg = {  # brute-force BSV: sharding does not depend on the sampler, and it compiles fastest
-        "method": {"bsv_grid": [4, 6], "directions": [8, 8], "bsv_method": "brute"},
+    cfg = {  # brute-force BSV: sharding does not depend on the sampler, and it compiles fastest; the
+             # egg's own-vertex visibility by rays, so that its rows are sharded with the receivers
+        "method": {"bsv_grid": [4, 6], "directions": [8, 8], "bsv_method": "brute",
+                   "self_visibility": "rays", "self_visibility_grid": [4, 8]},
         "environment": {"type": "sky", "radiance": [1.0, 0.9, 0.8]},
         "occluder": [
             {"type": "mesh", "shape": "egg", "subdivisions": 1, "center": [0.0, 0.8, 0.0], "radius": 0.5,

@@ -30,6 +30,7 @@ from ._schema import (
     OCCLUDER_TYPES,
     PRESETS,
     RECEIVER_TYPES,
+    SELF_VISIBILITIES,
     SHADINGS,
     AnimationConfig,
     Config,
@@ -187,6 +188,8 @@ _METHOD_KEYS = (
     "bsv_bands",
     "shading",
     "bsv_gradient",
+    "self_visibility",
+    "self_visibility_grid",
 )
 
 
@@ -213,6 +216,8 @@ def _method(t: _Table) -> MethodConfig:
         ),
         shading=t.string("shading", "product" if paper else "ratio", choices=SHADINGS),
         bsv_gradient=t.string("bsv_gradient", "auto", choices=BSV_GRADIENTS),
+        self_visibility=t.string("self_visibility", "field", choices=SELF_VISIBILITIES),
+        self_visibility_grid=t.integers("self_visibility_grid", 2, [24, 48], lo=2),
     )
     try:
         return MethodConfig(**cfg)

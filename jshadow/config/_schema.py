@@ -20,6 +20,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from ..entities import BSV_GRADIENTS as BSV_GRADIENTS
+from ..entities import SELF_VISIBILITIES as SELF_VISIBILITIES
 from ..entities import Method
 from ._errors import ConfigError
 
@@ -87,7 +88,10 @@ class MethodConfig(eqx.Module):
     shell radii, ``bsv_method`` "auto" | "brute" | "edgescan", ``bsv_bands`` bands of the BSV and
     M_k (≥ ``sh_bands``; default ``sh_bands`` + 1, or ``sh_bands`` for the paper), ``shading``
     "ratio" | "product" (see :func:`jshadow.scene.combine`), ``bsv_gradient`` "auto" | "raycast" |
-    "image" (visibility in the BSV's vertex derivative, see :class:`jshadow.entities.Method`).
+    "image" (visibility in the BSV's vertex derivative, see :class:`jshadow.entities.Method`),
+    ``self_visibility`` "field" | "rays" (an occluder's visibility at its own vertices with
+    ``self_shadow``: extrapolated by the field, or cast from each vertex) and
+    ``self_visibility_grid`` (θ, φ) ray directions per vertex for "rays".
     """
 
     preset: str = eqx.field(static=True, default="default")
@@ -103,6 +107,8 @@ class MethodConfig(eqx.Module):
     bsv_bands: int | None = eqx.field(static=True, default=None)
     shading: str = eqx.field(static=True, default="ratio")
     bsv_gradient: str = eqx.field(static=True, default="auto")
+    self_visibility: str = eqx.field(static=True, default="field")
+    self_visibility_grid: tuple[int, int] = eqx.field(static=True, default=(24, 48))
 
     def __check_init__(self):
         if self.model not in MODELS:
@@ -127,6 +133,8 @@ class MethodConfig(eqx.Module):
                 bsv_bands=self.bsv_bands,
                 shading=self.shading,
                 bsv_gradient=self.bsv_gradient,
+                self_visibility=self.self_visibility,
+                self_visibility_grid=tuple(self.self_visibility_grid),
             )
         except (ValueError, TypeError) as err:
             raise ConfigError(None, None, str(err)) from None

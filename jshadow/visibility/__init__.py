@@ -10,6 +10,7 @@
 * :mod:`._edgescan_grad`: the edge-scan BSV's vertex gradient in the image plane, with the
   visibility of each silhouette point from the winding number of the projected silhouette (exact;
   11–31× faster than the ray-cast visibility on whole frames).
+* :mod:`._own`: a mesh's visibility of itself at its own vertices, by rays (self-shadowing).
 """
 
 from ._bsv import BSV as BSV
@@ -34,6 +35,7 @@ from ._edgescan_grad import bsv_mesh_edgescan_diff as bsv_mesh_edgescan_diff
 from ._edgescan_grad import edgescan_grad_slots as edgescan_grad_slots
 from ._frames import bsv_frames as bsv_frames
 from ._frames import bsv_grid_angles as bsv_grid_angles
+from ._own import vertex_visibility_sh as vertex_visibility_sh
 from ._raycast import ray_fan_any_hit as ray_fan_any_hit
 from ._raycast import ray_sphere_any_hit as ray_sphere_any_hit
 from ._raycast import ray_triangle_any_hit as ray_triangle_any_hit
