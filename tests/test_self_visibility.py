@@ -10,6 +10,7 @@ config key is read and checked.
 """
 
 import dataclasses
+import json
 
 import jax
 import jax.numpy as jnp
@@ -167,3 +168,27 @@ def test_config_reads_and_checks_self_visibility():
         config_from_dict({**base, "method": {"self_visibility_grid": [1, 10]}})
     with pytest.raises(ValueError, match="self_visibility"):
         Method(self_visibility="exact")
+
+
+def test_cli_render_reports_the_cast_once_for_a_rigid_mesh(tmp_path, capsys):
+    from jshadow.cli import main
+
+    cfg = tmp_path / "egg.toml"
+    cfg.write_text(
+        "[method]\ndirections = [8, 8]\nbsv_grid = [6, 8]\n"
+        'self_visibility = "rays"\nself_visibility_grid = [6, 12]\n'
+        '[environment]\ntype = "constant"\n'
+        '[[occluder]]\ntype = "mesh"\nshape = "egg"\nsubdivisions = 1\n'
+        "center = [0.0, 1.0, 0.0]\nradius = 0.5\n"
+        '[receiver]\ntype = "plane"\ncenter = [0.0, 0.0, 0.0]\nsize = [3.0, 3.0]\nresolution = [4, 4]\n'
+        "self_shadow = true\n[animation]\nframes = 2\n"
+    )
+    assert main(["render", str(cfg), "--out", str(tmp_path / "r")]) == 0
+    t = json.loads((tmp_path / "r" / "timings.json").read_text())
+    assert t["self_visibility_computations"] == 1 and t["bsv_computations"] == 1
+    first, second = t["per_frame"]
+    assert first["self_visibility_ms"] > second["self_visibility_ms"] >= 0
+    assert second["total_ms"] == pytest.approx(
+        second["bsv_ms"] + second["self_visibility_ms"] + second["shading_ms"]
+    )
+    assert "own-vertex rays" in capsys.readouterr().out
