@@ -242,7 +242,7 @@ class Renderer:
             if shape_is_static(occ) and i in self._static_own:
                 own.append(self._static_own[i])
                 continue
-            v = occluder_own_visibility(occ, 0.0 if shape_is_static(occ) else t, self.scene)
+            v = occluder_own_visibility(occ, 0.0 if shape_is_static(occ) else t, self.scene, cache=False)
             self.self_visibility_computations += 1
             if shape_is_static(occ):
                 self._static_own[i] = v

@@ -361,19 +361,37 @@ def self_visibility_owners(scene: Scene) -> np.ndarray:
     return np.concatenate(rows)
 
 
-def occluder_own_visibility(occ: MeshOccluder, t, scene: Scene) -> Float[Array, "V n2"]:
+_OWN: list = []  # [(key, own visibility)] of concrete poses, most recent last (at most 8)
+
+
+def occluder_own_visibility(occ: MeshOccluder, t, scene: Scene, cache: bool = True) -> Float[Array, "V n2"]:
     """(V, n²) visibility of a mesh occluder at its own vertices at time t, by rays
     (:func:`jshadow.visibility.vertex_visibility_sh` with ``method.self_visibility_grid``).
 
-    Differentiating it with respect to the vertices (their deformation, offsets, position) raises
+    A concrete pose (vertices and faces not traced) is cast once and kept: :func:`render` called
+    again on a shape it has seen (another frame of a rigid mesh, another light position) reuses
+    the cast, as :class:`jshadow.Renderer` does (the last 8 poses are kept; ``cache=False`` casts
+    anew and keeps nothing, for a caller with its own reuse). Differentiating it
+    with respect to the vertices (their deformation, offsets, position) raises
     :data:`SELF_RAYS_NO_DERIVATIVE`: binary visibility has no derivative to give.
     """
     m = scene.method
     v = _vertices_at(occ, jnp.asarray(t, occ.unit_vertices.dtype))
     faces = occ.faces
+    grid = tuple(m.self_visibility_grid)
+    v_np, f_np = _concrete(v), _concrete(faces)
+    if cache and v_np is not None and f_np is not None:
+        key = (v_np.shape, str(v_np.dtype), v_np.tobytes(), f_np.shape, f_np.tobytes(), m.sh_bands, grid)
+        hit = [own for k, own in _OWN if k == key]
+        if not hit:
+            with jax.ensure_compile_time_eval():
+                hit = [np.asarray(vertex_visibility_sh(v_np, f_np, m.sh_bands, grid))]
+            _OWN.append((key, hit[0]))
+            del _OWN[:-8]
+        return jnp.asarray(hit[0])
 
     def forward(x):
-        return vertex_visibility_sh(x, faces, m.sh_bands, tuple(m.self_visibility_grid))
+        return vertex_visibility_sh(x, faces, m.sh_bands, grid)
 
     return _traced_faces_guard(forward, v, SELF_RAYS_NO_DERIVATIVE)
 

@@ -192,3 +192,20 @@ def test_cli_render_reports_the_cast_once_for_a_rigid_mesh(tmp_path, capsys):
         second["bsv_ms"] + second["self_visibility_ms"] + second["shading_ms"]
     )
     assert "own-vertex rays" in capsys.readouterr().out
+
+
+def test_render_casts_a_pose_once_and_reuses_it(monkeypatch):
+    import jshadow.scene as scene_module
+
+    calls = []
+    cast = scene_module.vertex_visibility_sh
+    monkeypatch.setattr(scene_module, "vertex_visibility_sh", lambda *a: calls.append(a[3]) or cast(*a))
+    occ = _torus(sections=(10, 5))  # a pose no other test casts
+    first = np.asarray(render(_scene(RAYS, occ, n=2)).irradiance)
+    again = np.asarray(render(_scene(RAYS, occ, n=2)).irradiance)
+    brighter = Scene(RAYS, plane(n=2), (occ,), (), Environment(f32(2, 2, 2)), self_shadow=True)
+    np.testing.assert_allclose(np.asarray(render(brighter).irradiance), 2 * first, rtol=1e-6)
+    np.testing.assert_array_equal(again, first)
+    assert calls == [GRID]  # one cast for three renders of the same pose
+    render(_scene(dataclasses.replace(RAYS, self_visibility_grid=(6, 12)), occ, n=2))
+    assert calls == [GRID, (6, 12)]  # another grid is another cast
