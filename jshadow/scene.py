@@ -749,8 +749,9 @@ def render(scene: Scene, frame: int = 0, sphere_path: str = "analytic") -> Rende
     Differentiable with respect to the scene's array leaves (light and occluder positions, radii,
     radiance, deformation amounts — but see the visibility module about gradients through binary
     visibility). Receivers are those of :func:`jshadow.entities.receivers_at`, in the same order.
-    With ``self_shadow`` and ``method.self_visibility = "rays"`` every call casts the occluders'
-    own-vertex visibility (seconds for a 2k-vertex mesh; :class:`jshadow.Renderer` reuses it for
-    shapes that do not change) and is not differentiable with respect to their vertices.
+    With ``self_shadow`` and ``method.self_visibility = "rays"`` the occluders' own-vertex
+    visibility is cast for every pose not seen before (seconds for a 2k-vertex mesh; the last 8
+    concrete poses are kept, :func:`occluder_own_visibility`) and is not differentiable with respect
+    to their vertices.
     """
     return render_at(scene, frame_time(frame, scene.n_frames), sphere_path=sphere_path)
