@@ -69,6 +69,7 @@ __all__ = [
     "self_visibility_owners",
     "occluder_own_visibility",
     "self_visibility_rows",
+    "own_rows_at_time",
     "Lighting",
     "scene_lighting",
     "combine",
