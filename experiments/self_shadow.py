@@ -24,7 +24,8 @@ Usage (repository root, project environment active)::
 
     python experiments/self_shadow.py
 
-Writes ``experiments/results/self_shadow.json``.
+Writes ``experiments/results/self_shadow.json`` and ``experiments/figures/self_shadow_vertices.png``
+(the error of every vertex with the field, the rays, and the rays with 6 lighting bands).
 """
 
 from __future__ import annotations
@@ -130,6 +131,8 @@ def library_rays(scene, frame: int, sphere_path: str):
 
 def main() -> None:
     results = {"ray_grid": list(RAY_GRID), "ray_grids": [list(g) for g in RAY_GRIDS]}
+    maps: dict = {}  # case -> (reference, plane receivers, scene, {setting: irradiance}) for plot()
+    maps_now: dict = {}
     for case in ("bunny_studio", "bunny_self_sky", "bunny_self_sky_twist"):
         build, frame, sphere_path, _ = models._cases()[case]
         base = build(models.VARIANTS["paper"], 32)
@@ -160,6 +163,8 @@ def main() -> None:
                 approx, _, warm = models.timed(scene, frame, sphere_path, runs=3)
                 timing = {"warm_ms": warm}
             e = models.errors(approx, ref, n_plane)
+            if label in MAPPED:
+                maps_now[label] = approx
             keep = (
                 "vertices_rel_rmse_pct",
                 "vertices_max_rel_err_pct",
@@ -178,9 +183,60 @@ def main() -> None:
             )
         results[case] = {"reference_spp": int(ref["spp"]), "vertices": int(ref["mean"].shape[0]) - n_plane}
         results[case]["rows"] = rows
+        maps[case] = (ref, n_plane, build(default, 32), dict(maps_now))
+        maps_now.clear()
     out = models.RESULTS / "self_shadow.json"
     out.write_text(json.dumps(results, indent=1))
     print(f"wrote {out}")
+    print(f"wrote {plot(maps)}")
+
+
+MAPPED = {  # settings drawn as vertex error maps, and their panel titles
+    "default (shell 1.5, BSV 5 bands)": "field (default)",
+    "self_visibility rays 24x48": 'self_visibility = "rays"',
+    "self_visibility rays 24x48, 6 lighting bands, BSV 7": '"rays", 6 lighting bands',
+}
+
+
+def plot(maps: dict) -> pathlib.Path:
+    """Signed error of every vertex's irradiance (relative to the vertices' mean reference), the
+    bunny seen from the front (+z) and from the side (+x), per scene and mapped setting."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    cols = [(label, view) for label in MAPPED for view in ("front", "side")]
+    fig, axes = plt.subplots(
+        len(maps),
+        len(cols),
+        figsize=(2.0 * len(cols) + 1, 2.4 * len(maps)),
+        squeeze=False,
+        layout="constrained",
+    )
+    for r, (case, (ref, n_plane, scene, approx)) in enumerate(maps.items()):
+        v = np.asarray(scene.occluders[0].vertices(0.0))
+        mean = ref["mean"][n_plane:, 0]
+        for c, (label, view) in enumerate(cols):
+            ax = axes[r, c]
+            err = 100 * (approx[label][n_plane:, 0] - mean) / mean.mean()
+            x = v[:, 0] if view == "front" else -v[:, 2]
+            depth = v[:, 2] if view == "front" else v[:, 0]
+            order = np.argsort(depth)  # far vertices first, so the near side is drawn on top
+            im = ax.scatter(x[order], v[order, 1], c=err[order], s=3, cmap="RdBu_r", vmin=-20, vmax=20)
+            rmse = float(np.sqrt(np.mean(err**2)))
+            ax.set_title(f"{MAPPED[label]}, {view}\nRMSE {rmse:.2f} %", fontsize=7)
+            ax.set_aspect("equal")
+            ax.set_xticks([])
+            ax.set_yticks([])
+            if c == 0:
+                ax.set_ylabel(case, fontsize=8)
+    fig.colorbar(im, ax=axes, shrink=0.8, fraction=0.02, label="vertex irradiance error, % of the mean")
+    models.FIGURES.mkdir(parents=True, exist_ok=True)
+    out = models.FIGURES / "self_shadow_vertices.png"
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
+    return out
 
 
 if __name__ == "__main__":

@@ -350,6 +350,7 @@ def cmd_fit(args) -> int:
     from .entities import frame_time
     from .optim import fit_params, plane_radiance
     from .picture import exposure_for
+    from .scene import SELF_RAYS_NO_DERIVATIVE
 
     cfg, scene0 = _load(args.config)
     fit = cfg.fit
@@ -380,16 +381,21 @@ def cmd_fit(args) -> int:
             fit.target_image, scene0, plane_radiance(build_scene(with_params(init)), frame)
         )
     out = _make_out(args.out)
-    res = fit_params(
-        lambda v: build_scene(with_params(v)),
-        init,
-        target,
-        steps=steps,
-        learning_rate=fit.learning_rate,
-        progress=True,
-        frame=frame,
-        regularization=fit.regularization,
-    )
+    try:
+        res = fit_params(
+            lambda v: build_scene(with_params(v)),
+            init,
+            target,
+            steps=steps,
+            learning_rate=fit.learning_rate,
+            progress=True,
+            frame=frame,
+            regularization=fit.regularization,
+        )
+    except ValueError as err:  # a fitted mesh parameter with self_visibility = "rays"
+        if str(err) != SELF_RAYS_NO_DERIVATIVE:
+            raise
+        raise UsageError(f"{args.config}: {err}") from None
     report = {
         "params": {p: np.asarray(v).tolist() for p, v in zip(paths, res.params, strict=True)},
         "init": {p: np.asarray(v).tolist() for p, v in zip(paths, init, strict=True)},

@@ -732,10 +732,11 @@ def combine(
 
 def render_at(scene: Scene, t, bsvs: tuple[BSV | None, ...] | None = None, sphere_path="analytic"):
     """Render at animation time t ∈ [0, 1] (see :func:`render`)."""
+    own = own_rows_at_time(scene, t)  # first: differentiating it raises before the BSVs are traced
     if bsvs is None:
         bsvs = scene_bsvs(scene, t, sphere_path)
     points, normals = receivers_at_time(scene, t)
-    vis, dist = occluder_visibilities(scene, bsvs, points, own_rows_at_time(scene, t))
+    vis, dist = occluder_visibilities(scene, bsvs, points, own)
     shared = shared_normal_count(scene.receivers.normals)  # the plane's receivers lead `points`
     e = combine(
         scene, points, normals, vis, dist, analytic_spheres=sphere_path == "analytic", shared_normal=shared

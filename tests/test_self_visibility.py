@@ -170,19 +170,22 @@ def test_config_reads_and_checks_self_visibility():
         Method(self_visibility="exact")
 
 
+EGG = (
+    "[method]\ndirections = [8, 8]\nbsv_grid = [6, 8]\n"
+    'self_visibility = "rays"\nself_visibility_grid = [6, 12]\n'
+    '[environment]\ntype = "constant"\n'
+    '[[occluder]]\ntype = "mesh"\nshape = "egg"\nsubdivisions = 1\n'
+    "center = [0.0, 1.0, 0.0]\nradius = 0.5\n"
+    '[receiver]\ntype = "plane"\ncenter = [0.0, 0.0, 0.0]\nsize = [3.0, 3.0]\nresolution = [4, 4]\n'
+    "self_shadow = true\n[animation]\nframes = 2\n"
+)
+
+
 def test_cli_render_reports_the_cast_once_for_a_rigid_mesh(tmp_path, capsys):
     from jshadow.cli import main
 
     cfg = tmp_path / "egg.toml"
-    cfg.write_text(
-        "[method]\ndirections = [8, 8]\nbsv_grid = [6, 8]\n"
-        'self_visibility = "rays"\nself_visibility_grid = [6, 12]\n'
-        '[environment]\ntype = "constant"\n'
-        '[[occluder]]\ntype = "mesh"\nshape = "egg"\nsubdivisions = 1\n'
-        "center = [0.0, 1.0, 0.0]\nradius = 0.5\n"
-        '[receiver]\ntype = "plane"\ncenter = [0.0, 0.0, 0.0]\nsize = [3.0, 3.0]\nresolution = [4, 4]\n'
-        "self_shadow = true\n[animation]\nframes = 2\n"
-    )
+    cfg.write_text(EGG)
     assert main(["render", str(cfg), "--out", str(tmp_path / "r")]) == 0
     t = json.loads((tmp_path / "r" / "timings.json").read_text())
     assert t["self_visibility_computations"] == 1 and t["bsv_computations"] == 1
@@ -209,3 +212,17 @@ def test_render_casts_a_pose_once_and_reuses_it(monkeypatch):
     assert calls == [GRID]  # one cast for three renders of the same pose
     render(_scene(dataclasses.replace(RAYS, self_visibility_grid=(6, 12)), occ, n=2))
     assert calls == [GRID, (6, 12)]  # another grid is another cast
+
+
+def test_cli_fit_of_a_mesh_parameter_with_rays_is_a_one_line_error(tmp_path, capsys):
+    from jshadow.cli import main
+
+    cfg = tmp_path / "fit.toml"
+    cfg.write_text(
+        EGG.replace("frames = 2", "frames = 1")
+        + '[fit]\nparams = ["occluder.0.center"]\ntarget_values = [[0.1, 1.0, 0.0]]\nsteps = 2\n'
+    )
+    assert main(["fit", str(cfg), "--out", str(tmp_path / "f")]) == 2
+    err = [line for line in capsys.readouterr().err.splitlines() if "error" in line]  # not the progress bar
+    assert len(err) == 1 and err[0].startswith("jshadow fit: error: ")
+    assert "self_visibility = 'field'" in err[0]
