@@ -199,8 +199,9 @@ MAPPED = {  # settings drawn as vertex error maps, and their panel titles
 
 
 def plot(maps: dict) -> pathlib.Path:
-    """Signed error of every vertex's irradiance (relative to the vertices' mean reference), the
-    bunny seen from the front (+z) and from the side (+x), per scene and mapped setting."""
+    """Signed error of every vertex's irradiance, averaged over the colour channels, in % of the
+    vertices' mean reference (the titles' RMSE is ``vertices_rel_rmse_pct``), the bunny seen from
+    the front (+z) and from the side (+x), per scene and mapped setting."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -216,15 +217,16 @@ def plot(maps: dict) -> pathlib.Path:
     )
     for r, (case, (ref, n_plane, scene, approx)) in enumerate(maps.items()):
         v = np.asarray(scene.occluders[0].vertices(0.0))
-        mean = ref["mean"][n_plane:, 0]
+        mean = ref["mean"][n_plane:]  # (V, 3): the errors as in models.errors, over the channels
         for c, (label, view) in enumerate(cols):
             ax = axes[r, c]
-            err = 100 * (approx[label][n_plane:, 0] - mean) / mean.mean()
+            err_rgb = 100 * (approx[label][n_plane:] - mean) / mean.mean()
+            err = err_rgb.mean(axis=1)  # drawn: the vertex's error averaged over the channels
             x = v[:, 0] if view == "front" else -v[:, 2]
             depth = v[:, 2] if view == "front" else v[:, 0]
             order = np.argsort(depth)  # far vertices first, so the near side is drawn on top
             im = ax.scatter(x[order], v[order, 1], c=err[order], s=3, cmap="RdBu_r", vmin=-20, vmax=20)
-            rmse = float(np.sqrt(np.mean(err**2)))
+            rmse = float(np.sqrt(np.mean(err_rgb**2)))  # = vertices_rel_rmse_pct
             ax.set_title(f"{MAPPED[label]}, {view}\nRMSE {rmse:.2f} %", fontsize=7)
             ax.set_aspect("equal")
             ax.set_xticks([])
