@@ -275,10 +275,10 @@ class Renderer:
 
         ``bsv_ms``: the BSVs; ``shading_ms``: placing the frame's receivers, field evaluation and
         combination; ``total_ms``: all stages. With ``method.self_visibility = "rays"`` also
-        ``self_visibility_ms``: casting the occluders' own-vertex visibility (0 after the first
-        frame for shapes that do not change). With ``split_stages`` also ``field_ms`` (including placing
-        the receivers) and ``combine_ms``, whose sum is ``shading_ms``. With several pieces the
-        shading times are summed over the pieces.
+        ``self_visibility_ms``: casting the occluders' own-vertex visibility (about 0 after the
+        first frame for shapes that do not change). With ``split_stages`` also ``field_ms``
+        (including placing the receivers) and ``combine_ms``, whose sum is ``shading_ms``. With
+        several pieces the shading times are summed over the pieces.
         """
         from tqdm.auto import tqdm
 
