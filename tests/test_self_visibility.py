@@ -4,9 +4,10 @@ Claims tested: the ray-cast visibility of a convex mesh at its vertices is the c
 vertex's tangent cone (closed form); on a torus lying over a plane the rays' irradiance at the
 vertices is within 2 % relative RMSE of the Monte Carlo reference, where the field's inward
 extrapolation is off by more than 10 %; the Renderer's one-call, split and chunked paths and
-``render`` agree; a shape that does not change is cast once, a deforming one every frame; the
-option is refused under differentiation with respect to the vertices and free elsewhere; the
-config key is read and checked.
+``render`` agree; a shape that does not change is cast once, a deforming one every frame, and
+``render`` reuses the cast of a pose it has seen; the option is refused under differentiation with
+respect to the vertices (``jshadow fit`` says so in one line) and free elsewhere; the config keys
+are read and checked, and ``jshadow render`` reports the cast's time and count.
 """
 
 import dataclasses
