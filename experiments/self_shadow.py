@@ -11,12 +11,14 @@ map), ``bunny_self_sky`` (the calibration bunny under a constant sky) and ``bunn
 (the same bunny twisted by 1.2 rad about its vertical axis) — with the default method at several
 shell radii and band counts, and with the field's rows at the bunny's own vertices replaced by a
 direct computation, the library's ``[method] self_visibility = "rays"``: each vertex's visibility of
-the mesh by rays (:func:`jshadow.visibility.vertex_visibility_sh`, a Gauss–Legendre × uniform sphere
-grid of 12 × 24 to 32 × 64 directions; an origin on the surface ignores its own faces) projected to
-the lighting's bands, then the same combination, through :class:`jshadow.Renderer` (the cast's warm
-time is that of a second renderer, the first one having compiled it). For the twisted bunny also
-with that visibility cast on the *rest* pose, as it is and rotated by each vertex's tangent-frame
-change: can a deforming mesh reuse one precomputation?
+the mesh by rays (:func:`jshadow.visibility.vertex_visibility_sh`: a Gauss–Legendre × uniform grid
+of 6 × 24 to 16 × 64 directions over the hemisphere about the vertex normal, V = 0 below it; an
+origin on the surface ignores its own faces) projected to the lighting's bands, then the same
+combination, through :class:`jshadow.Renderer` (the cast's warm time is that of a second renderer,
+the first one having compiled it). Once more with this script's own substitution, rays over the
+whole sphere (24 × 48, as dense as the hemisphere's 12 × 48) by :func:`ray_fan_any_hit`. For the
+twisted bunny also with that visibility cast on the *rest* pose, as it is and rotated by each
+vertex's tangent-frame change: can a deforming mesh reuse one precomputation?
 Errors are against the cached Monte Carlo references (``experiments/results/refs/<case>.npz``;
 ``models.py --cases <case>`` computes a missing one), for the vertices and the plane separately.
 
@@ -56,8 +58,8 @@ SETTINGS = [
     ("shell 1.1, BSV 7 bands", {"shell": 1.1, "bsv_bands": 7}),
     ("6 lighting bands, BSV 7", {"sh_bands": 6, "bsv_bands": 7}),
 ]
-RAY_GRID = (24, 48)  # the library's default self_visibility_grid
-RAY_GRIDS = [(12, 24), (16, 32), (24, 48), (32, 64)]
+RAY_GRID = (24, 48)  # whole-sphere rays of vertex_rays(): the density of the hemisphere's 12 x 48
+RAY_GRIDS = [(6, 24), (8, 32), (12, 48), (16, 64)]  # self_visibility_grid (hemisphere); default 12 x 48
 
 
 def _frames(v, normals, faces):
@@ -144,11 +146,11 @@ def main() -> None:
         for grid in RAY_GRIDS:
             keys = dict(self_visibility="rays", self_visibility_grid=grid)
             runs.append((f"self_visibility rays {grid[0]}x{grid[1]}", dict(default, **keys), "library"))
-        for grid in ((12, 24), (24, 48)):
+        for grid in ((6, 24), (12, 48)):
             keys = dict(self_visibility="rays", self_visibility_grid=grid, sh_bands=6, bsv_bands=7)
             label = f"self_visibility rays {grid[0]}x{grid[1]}, 6 lighting bands, BSV 7"
             runs.append((label, dict(default, **keys), "library"))
-        runs.append(("default, rays at the own vertices", default, "current"))
+        runs.append(("default, whole-sphere rays 24x48 (vertex_rays)", default, "current"))
         if base.occluders[0].deform is not None:
             runs.append(("default, rays at the rest pose", default, "rest"))
             runs.append(("default, rays at the rest pose, rotated", default, "rest, rotated"))
@@ -193,8 +195,8 @@ def main() -> None:
 
 MAPPED = {  # settings drawn as vertex error maps, and their panel titles
     "default (shell 1.5, BSV 5 bands)": "field (default)",
-    "self_visibility rays 24x48": 'self_visibility = "rays"',
-    "self_visibility rays 24x48, 6 lighting bands, BSV 7": '"rays", 6 lighting bands',
+    "self_visibility rays 12x48": 'self_visibility = "rays"',
+    "self_visibility rays 12x48, 6 lighting bands, BSV 7": '"rays", 6 lighting bands',
 }
 
 

@@ -76,9 +76,10 @@ class Method:
     ``self_visibility`` chooses an occluder's visibility at its own vertices when they are receivers
     (``Scene.self_shadow``): "field" (default) extrapolates the shell's visibility inward like any
     other receiver's, about 10 % relative RMSE on the bunny's vertices under a constant sky;
-    "rays" casts ``self_visibility_grid`` (θ × φ, Gauss–Legendre × uniform over the sphere) rays from
-    every vertex against the mesh (:func:`jshadow.visibility.vertex_visibility_sh`): 1.3 % there, at
-    seconds of ray casting per pose of a 2k-vertex mesh on two CPU cores, so
+    "rays" casts ``self_visibility_grid`` (θ × φ, Gauss–Legendre × uniform over the hemisphere about
+    the vertex normal) rays from every vertex against the mesh
+    (:func:`jshadow.visibility.vertex_visibility_sh`): 1.3 % there, at about a second of ray casting
+    per pose of a 2k-vertex mesh on two CPU cores, so
     :class:`jshadow.Renderer` casts once for an occluder whose shape does not change and every frame
     for one that deforms. "rays" has no derivative with respect to the vertices (binary visibility):
     differentiating it raises (BENCHMARKS.md "Self-shadowing").
@@ -97,7 +98,7 @@ class Method:
     shading: str = "ratio"  # "ratio" | "product" (Zhou et al. 2005, the paper)
     bsv_gradient: str = "auto"  # "auto" | "raycast" | "image" (silhouette visibility of the BSV derivative)
     self_visibility: str = "field"  # "field" | "rays": visibility at an occluder's own vertices
-    self_visibility_grid: tuple[int, int] = (24, 48)  # θ × φ ray directions per vertex ("rays")
+    self_visibility_grid: tuple[int, int] = (12, 48)  # θ × φ rays over each vertex's normal hemisphere
 
     @classmethod
     def paper(cls, **options) -> Method:

@@ -217,7 +217,7 @@ def _method(t: _Table) -> MethodConfig:
         shading=t.string("shading", "product" if paper else "ratio", choices=SHADINGS),
         bsv_gradient=t.string("bsv_gradient", "auto", choices=BSV_GRADIENTS),
         self_visibility=t.string("self_visibility", "field", choices=SELF_VISIBILITIES),
-        self_visibility_grid=t.integers("self_visibility_grid", 2, [24, 48], lo=2),
+        self_visibility_grid=t.integers("self_visibility_grid", 2, [12, 48], lo=2),
     )
     try:
         return MethodConfig(**cfg)

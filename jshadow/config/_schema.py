@@ -91,7 +91,7 @@ class MethodConfig(eqx.Module):
     "image" (visibility in the BSV's vertex derivative, see :class:`jshadow.entities.Method`),
     ``self_visibility`` "field" | "rays" (an occluder's visibility at its own vertices with
     ``self_shadow``: extrapolated by the field, or cast from each vertex) and
-    ``self_visibility_grid`` (θ, φ) ray directions per vertex for "rays".
+    ``self_visibility_grid`` (θ, φ) ray directions over each vertex's normal hemisphere for "rays".
     """
 
     preset: str = eqx.field(static=True, default="default")
@@ -108,7 +108,7 @@ class MethodConfig(eqx.Module):
     shading: str = eqx.field(static=True, default="ratio")
     bsv_gradient: str = eqx.field(static=True, default="auto")
     self_visibility: str = eqx.field(static=True, default="field")
-    self_visibility_grid: tuple[int, int] = eqx.field(static=True, default=(24, 48))
+    self_visibility_grid: tuple[int, int] = eqx.field(static=True, default=(12, 48))
 
     def __check_init__(self):
         if self.model not in MODELS:
