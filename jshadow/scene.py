@@ -156,7 +156,7 @@ def mesh_bsv(occ: MeshOccluder, t, scene: Scene, differentiable: bool = True) ->
 def _differentiable_coeffs(occ: MeshOccluder, v, faces: np.ndarray | None, m, kw):
     """BSV coefficients of ``v`` carrying the silhouette derivative that ``m.bsv_gradient`` selects."""
     if faces is None:  # the forward pass works; a derivative would silently miss the silhouette term
-        return _traced_faces_guard(lambda x: bsv_mesh(x, occ.faces, method=m.bsv_method, **kw).coeffs, v)
+        return _no_derivative_guard(lambda x: bsv_mesh(x, occ.faces, method=m.bsv_method, **kw).coeffs, v)
     if bsv_gradient_mode(m, faces) == "image":
         if not is_closed_manifold(faces):
             raise ValueError(
@@ -210,7 +210,7 @@ TRACED_FACES = (
 )
 
 
-def _traced_faces_guard(forward, v, message: str = TRACED_FACES):
+def _no_derivative_guard(forward, v, message: str = TRACED_FACES):
     """``forward(v)``, raising ``message`` (default :data:`TRACED_FACES`) if it is differentiated
     with respect to ``v`` (instead of a zero derivative through binary visibility)."""
 
@@ -394,7 +394,7 @@ def occluder_own_visibility(occ: MeshOccluder, t, scene: Scene, cache: bool = Tr
     def forward(x):
         return vertex_visibility_sh(x, faces, m.sh_bands, grid)
 
-    return _traced_faces_guard(forward, v, SELF_RAYS_NO_DERIVATIVE)
+    return _no_derivative_guard(forward, v, SELF_RAYS_NO_DERIVATIVE)
 
 
 def self_visibility_rows(scene: Scene, own: list) -> Float[Array, "N n2"]:
