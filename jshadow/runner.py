@@ -42,13 +42,16 @@ from .entities import MeshOccluder, Receivers, Scene, frame_time, receivers_at_t
 from .scene import (
     RenderResult,
     combine,
+    light_visible_fractions,
     occluder_bsv,
+    occluder_images,
     occluder_own_visibility,
     occluder_visibilities,
     scene_lighting,
     self_visibility_owners,
     self_visibility_rows,
     shared_normal_count,
+    uses_light_images,
     uses_self_rays,
 )
 
@@ -84,32 +87,42 @@ def _fields(scene, bsvs, points, own=None):
     return (jnp.stack(vis), jnp.stack(dist)) if vis else (vis, dist)
 
 
-def _combine_piece(scene, points, normals, vis, dist, lighting, analytic_spheres, shared_normal):
+def _combine_piece(scene, points, normals, vis, dist, lighting, analytic_spheres, shared_normal, images=None):
+    """Combination of one piece (``images``: the occluders' occlusion images with
+    ``light_visibility = "images"``, else None; see :func:`jshadow.scene.light_visible_fractions`)."""
     vis, dist = list(vis), list(dist)  # (m, ...) arrays or empty lists -> lists of m arrays
-    e = combine(scene, points, normals, vis, dist, lighting, analytic_spheres, shared_normal)
+    fractions = None if images is None else light_visible_fractions(scene, images, points, normals)
+    e = combine(scene, points, normals, vis, dist, lighting, analytic_spheres, shared_normal, fractions)
     return e, e * (scene.receivers.albedo / math.pi)
 
 
 _combine = eqx.filter_jit(_combine_piece)
 
 
-def _shade_piece(scene, bsvs, points, normals, lighting, analytic_spheres, shared_normal, own=None):
+def _shade_piece(
+    scene, bsvs, points, normals, lighting, analytic_spheres, shared_normal, own=None, images=None
+):
     """Field evaluation and combination of one piece of receivers, traced together (``own``: the
-    piece's rows of the ray-cast own-vertex visibility, see :func:`jshadow.scene.occluder_visibilities`)."""
+    piece's rows of the ray-cast own-vertex visibility, see :func:`jshadow.scene.occluder_visibilities`;
+    ``images``: see :func:`_combine_piece`)."""
     vis, dist = occluder_visibilities(scene, bsvs, points, own)
-    return _combine_piece(scene, points, normals, vis, dist, lighting, analytic_spheres, shared_normal)
+    return _combine_piece(
+        scene, points, normals, vis, dist, lighting, analytic_spheres, shared_normal, images
+    )
 
 
 _shade = eqx.filter_jit(_shade_piece)
 
 
-def _place_and_shade_frame(scene, bsvs, t, lighting, analytic_spheres, shared_normal, own=None):
+def _place_and_shade_frame(scene, bsvs, t, lighting, analytic_spheres, shared_normal, own=None, images=None):
     """A whole frame's shading: its receivers (:func:`receivers_at_time`), then
     :func:`_shade_piece` on all of them (traced on the scene without its receiver arrays, as the
     pieces of the split path are, so that both compile the same field and combination)."""
     points, normals = receivers_at_time(scene, t)
     light = _without_receivers(scene)
-    e, rad = _shade_piece(light, bsvs, points, normals, lighting, analytic_spheres, shared_normal, own)
+    e, rad = _shade_piece(
+        light, bsvs, points, normals, lighting, analytic_spheres, shared_normal, own, images
+    )
     return points, normals, e, rad
 
 
@@ -120,15 +133,15 @@ _FLAT_SHADERS: dict = {}
 
 
 def _flat_shader(scene: Scene, lighting, analytic_spheres: bool, shared_normal: int):
-    """:func:`_place_and_shade` for one scene as ``(call, dynamic)``: ``call(dynamic, bsvs, t, own)`` is a
-    plain ``jax.jit`` function of the scene's and lighting's arrays (``dynamic``, a list flattened
-    once here) and of the frame's BSVs and time. ``eqx.filter_jit`` partitions, flattens and hashes
-    the whole scene on every call: without that the six shipped configs shade in 0.86–0.91× the
-    time (the airplane 2.69 → 2.32 ms, BENCHMARKS.md, "Rendering"). Same trace, same numbers.
-    Scenes with the same structure and static parts share one compiled function (a renderer per
-    thread, or per test, compiles once); ``own`` is the frame's ray-cast own-vertex visibility or
-    None. Returns None if the static parts cannot be hashed (the caller then uses
-    :func:`_place_and_shade`)."""
+    """:func:`_place_and_shade` for one scene as ``(call, dynamic)``: ``call(dynamic, bsvs, t, own,
+    images)`` is a plain ``jax.jit`` function of the scene's and lighting's arrays (``dynamic``, a
+    list flattened once here) and of the frame's BSVs and time. ``eqx.filter_jit`` partitions,
+    flattens and hashes the whole scene on every call: without that the six shipped configs shade in
+    0.86–0.91× the time (the airplane 2.69 → 2.32 ms, BENCHMARKS.md, "Rendering"). Same trace, same
+    numbers. Scenes with the same structure and static parts share one compiled function (a renderer
+    per thread, or per test, compiles once); ``own`` is the frame's ray-cast own-vertex visibility or
+    None, ``images`` the occluders' occlusion images or None. Returns None if the static parts cannot
+    be hashed (the caller then uses :func:`_place_and_shade`)."""
     leaves, tree = jax.tree_util.tree_flatten((scene, lighting))
     mask = tuple(eqx.is_array(x) for x in leaves)
     static = tuple(None if m else x for x, m in zip(leaves, mask, strict=True))
@@ -140,11 +153,11 @@ def _flat_shader(scene: Scene, lighting, analytic_spheres: bool, shared_normal: 
         return None
     if call is None:
 
-        def run(dyn, bsvs, t, own):
+        def run(dyn, bsvs, t, own, images):
             it = iter(dyn)
             full = [next(it) if m else x for x, m in zip(static, mask, strict=True)]
             scn, light = jax.tree_util.tree_unflatten(tree, full)
-            return _place_and_shade_frame(scn, bsvs, t, light, analytic_spheres, shared_normal, own)
+            return _place_and_shade_frame(scn, bsvs, t, light, analytic_spheres, shared_normal, own, images)
 
         if len(_FLAT_SHADERS) >= 32:  # scenes are few per process; bound the cache anyway
             _FLAT_SHADERS.clear()
@@ -214,6 +227,11 @@ class Renderer:
         self._static_rows = None  # all of them, when no mesh occluder deforms
         self.self_visibility_computations = 0
         self._flat = None  # _flat_shader(...) (or ()), built at the first one-call frame
+        # method.light_visibility = "images": the occluders' occlusion images, once for shapes that
+        # do not change, every frame for those that deform (tests check the reuse)
+        self._uses_images = uses_light_images(scene)
+        self._static_images: dict[int, object] = {}
+        self.image_computations = 0
 
     def _bsvs(self, t):
         out = []
@@ -252,15 +270,34 @@ class Renderer:
             self._static_rows = rows
         return rows, self._owners
 
-    def _shade_once(self, bsvs, t, own):
+    def _images(self, t):
+        """The frame's occlusion images per occluder (None unless the scene uses them)."""
+        if not self._uses_images:
+            return None
+        out = []
+        for i, occ in enumerate(self.scene.occluders):
+            static = shape_is_static(occ)
+            if static and i in self._static_images:
+                out.append(self._static_images[i])
+                continue
+            img = occluder_images(occ, 0.0 if static else t, self.scene)
+            self.image_computations += img is not None
+            if static:
+                self._static_images[i] = img
+            out.append(img)
+        return tuple(out)
+
+    def _shade_once(self, bsvs, t, own=None, images=None):
         """One call placing every receiver of the frame at time ``t`` (an array) and shading them."""
         analytic = self.sphere_path == "analytic"
         if self._flat is None:  # () when the scene cannot be flattened into a hashable key
             self._flat = _flat_shader(self.scene, self._lighting, analytic, self._shared_normal) or ()
         if not self._flat:
-            return _place_and_shade(self.scene, bsvs, t, self._lighting, analytic, self._shared_normal, own)
+            return _place_and_shade(
+                self.scene, bsvs, t, self._lighting, analytic, self._shared_normal, own, images
+            )
         call, dynamic = self._flat
-        return call(dynamic, bsvs, t, own)
+        return call(dynamic, bsvs, t, own, images)
 
     def piece_size(self, n: int) -> int:
         """Receivers per piece for a frame of n receivers (a multiple of the device count)."""
@@ -276,9 +313,11 @@ class Renderer:
         ``bsv_ms``: the BSVs; ``shading_ms``: placing the frame's receivers, field evaluation and
         combination; ``total_ms``: all stages. With ``method.self_visibility = "rays"`` also
         ``self_visibility_ms``: casting the occluders' own-vertex visibility (about 0 after the
-        first frame for shapes that do not change). With ``split_stages`` also ``field_ms``
-        (including placing the receivers) and ``combine_ms``, whose sum is ``shading_ms``. With
-        several pieces the shading times are summed over the pieces.
+        first frame for shapes that do not change). With ``method.light_visibility = "images"``
+        (and sphere lights) also ``light_images_ms``: the occluders' occlusion images (likewise).
+        With ``split_stages`` also ``field_ms`` (including placing the receivers) and
+        ``combine_ms``, whose sum is ``shading_ms``. With several pieces the shading times are
+        summed over the pieces.
         """
         from tqdm.auto import tqdm
 
@@ -287,15 +326,19 @@ class Renderer:
         bsvs = jax.block_until_ready(self._bsvs(t))
         t_own = time.perf_counter()
         own = jax.block_until_ready(self._own(t))
+        t_img = time.perf_counter()
+        images = jax.block_until_ready(self._images(t))
         t1 = time.perf_counter()
         first = {"bsv_ms": 1e3 * (t_own - t0)}
         if own is not None:
-            first["self_visibility_ms"] = 1e3 * (t1 - t_own)
+            first["self_visibility_ms"] = 1e3 * (t_img - t_own)
+        if images is not None:
+            first["light_images_ms"] = 1e3 * (t1 - t_img)
         t_arr = jnp.asarray(t, self.scene.receivers.points.dtype)  # traced: one compilation for all frames
         analytic = self.sphere_path == "analytic"
         n = self._receiver_count
         if not self.split_stages and self.mesh is None and n <= self.chunk:
-            points, normals, e, rad = jax.block_until_ready(self._shade_once(bsvs, t_arr, own))
+            points, normals, e, rad = jax.block_until_ready(self._shade_once(bsvs, t_arr, own, images))
             t2 = time.perf_counter()
             res = RenderResult(points=points, normals=normals, irradiance=e, radiance=rad)
             times = {**first, "shading_ms": 1e3 * (t2 - t1)}
@@ -329,11 +372,11 @@ class Renderer:
                 vis, dist = jax.block_until_ready(_fields(self._light, bsvs, p, o))
                 tb = time.perf_counter()
                 e, rad = jax.block_until_ready(
-                    _combine(self._light, p, q, vis, dist, self._lighting, analytic, shared)
+                    _combine(self._light, p, q, vis, dist, self._lighting, analytic, shared, images)
                 )
             else:
                 e, rad = jax.block_until_ready(
-                    _shade(self._light, bsvs, p, q, self._lighting, analytic, shared, o)
+                    _shade(self._light, bsvs, p, q, self._lighting, analytic, shared, o, images)
                 )
                 tb = time.perf_counter()
             tc = time.perf_counter()

@@ -43,9 +43,11 @@ from .lights import (
     sphere_light_irradiance,
     sphere_light_sh,
 )
+from .sampling import stratified_sphere_cone
 from .scaling import MkTable, mk_table
 from .visibility import (
     BSV,
+    OcclusionImages,
     bsv_mesh,
     bsv_mesh_diff,
     bsv_mesh_edgescan,
@@ -54,7 +56,10 @@ from .visibility import (
     bsv_sphere,
     edgescan_grad_slots,
     edgescan_slots,
+    image_ray_visibility,
     is_closed_manifold,
+    occlusion_images,
+    ray_sphere_any_hit,
     vertex_visibility_sh,
 )
 
@@ -70,6 +75,10 @@ __all__ = [
     "occluder_own_visibility",
     "self_visibility_rows",
     "own_rows_at_time",
+    "uses_light_images",
+    "occluder_images",
+    "scene_images",
+    "light_visible_fractions",
     "Lighting",
     "scene_lighting",
     "combine",
@@ -415,6 +424,92 @@ def own_rows_at_time(scene: Scene, t) -> tuple[Float[Array, "N n2"], Array] | No
     return self_visibility_rows(scene, own), jnp.asarray(self_visibility_owners(scene))
 
 
+LIGHT_IMAGES_NO_DERIVATIVE = (
+    "method.light_visibility = 'images' looks rays to the sphere lights up in binary occlusion images, "
+    "which have no derivative with respect to geometry (vertices, occluder or light positions and "
+    "radii, receivers): differentiate with light_visibility = 'sh' (radiance derivatives work with both)"
+)
+
+
+def uses_light_images(scene: Scene) -> bool:
+    """Whether sphere lights are shadowed through the occlusion images
+    (``method.light_visibility = "images"`` and the scene has sphere lights)."""
+    return scene.method.light_visibility == "images" and bool(scene.lights)
+
+
+def occluder_images(occ, t, scene: Scene) -> OcclusionImages | None:
+    """The occlusion images (:func:`jshadow.visibility.occlusion_images`) of a mesh occluder at time
+    t on the method's shell, grid and directions; None for a sphere occluder (an exact ray test is
+    used instead). Differentiating them with respect to the vertices raises
+    :data:`LIGHT_IMAGES_NO_DERIVATIVE`."""
+    if not isinstance(occ, MeshOccluder):
+        return None
+    m = scene.method
+    v = _vertices_at(occ, jnp.asarray(t, occ.unit_vertices.dtype))
+    faces = occ.faces
+
+    def forward(x):
+        return occlusion_images(x, faces, tuple(m.bsv_grid), tuple(m.directions), float(m.shell))
+
+    return _no_derivative_guard(forward, v, LIGHT_IMAGES_NO_DERIVATIVE)
+
+
+def scene_images(scene: Scene, t) -> tuple[OcclusionImages | None, ...] | None:
+    """:func:`occluder_images` of every occluder at time t, or None unless :func:`uses_light_images`."""
+    if not uses_light_images(scene):
+        return None
+    return tuple(occluder_images(o, t, scene) for o in scene.occluders)
+
+
+def light_visible_fractions(
+    scene: Scene,
+    images: tuple[OcclusionImages | None, ...],
+    points: Float[Array, "N 3"],
+    normals: Float[Array, "N 3"],
+) -> list[Float[Array, " N"]]:
+    """Per sphere light, the cosine-weighted visible fraction (N,) of the light at each receiver.
+
+    ``F = Σ_k V(x, ω_k) cos⁺_k / Σ_k cos⁺_k`` over the ``method.light_cap`` stratified directions
+    ω_k of the light's cap (:func:`jshadow.sampling.stratified_sphere_cone`). ``V`` multiplies, per
+    direction, every occluder whose centre is nearer than the light's: a mesh occluder looked up in
+    its ``images`` (:func:`jshadow.visibility.image_ray_visibility`), a sphere occluder by an exact
+    ray test. A receiver that sees none of the cap above its horizon gets F = 1 (its exact
+    unoccluded irradiance is 0 anyway). Differentiating with respect to the geometry raises
+    :data:`LIGHT_IMAGES_NO_DERIVATIVE`.
+    """
+    strata = tuple(scene.method.light_cap)
+    geometry = (
+        points,
+        normals,
+        [(light.center, light.radius) for light in scene.lights],
+        [(o.center, o.radius) for o in scene.occluders if not isinstance(o, MeshOccluder)],
+    )
+
+    def forward(geo):
+        pts, nrm, lights, spheres = geo
+        it = iter(spheres)
+        blockers = [(img, None) if img is not None else (None, next(it)) for img in images]
+        out = []
+        for lc, lr in lights:
+            dirs = stratified_sphere_cone(lc - pts, lr, strata)  # (N, K, 3)
+            d_l = safe_norm(pts - lc)
+            vis = jnp.ones(dirs.shape[:2], pts.dtype)
+            for img, sphere in blockers:
+                if img is None:
+                    c, r = sphere
+                    v = 1.0 - ray_sphere_any_hit(pts[:, None, :], dirs, c, r).astype(pts.dtype)
+                else:
+                    c = img.center
+                    v = image_ray_visibility(img, pts[:, None, :], dirs)
+                vis = vis * jnp.where((safe_norm(pts - c) < d_l)[:, None], v, 1.0)
+            cos = jnp.maximum(jnp.sum(dirs * nrm[:, None, :], -1), 0.0)
+            den = jnp.sum(cos, -1)
+            out.append(jnp.where(den > 0, jnp.sum(vis * cos, -1) / jnp.where(den > 0, den, 1.0), 1.0))
+        return out
+
+    return _no_derivative_guard(forward, geometry, LIGHT_IMAGES_NO_DERIVATIVE)
+
+
 def occluder_visibilities(
     scene: Scene,
     bsvs: tuple[BSV | None, ...],
@@ -581,6 +676,7 @@ def combine(
     lighting: Lighting | None = None,
     analytic_spheres: bool = True,
     shared_normal: int = 0,
+    light_fractions: list | None = None,
 ) -> Float[Array, "N 3"]:
     """Irradiance (N, 3) from the occluders' visibilities and the scene's lights.
 
@@ -610,6 +706,10 @@ def combine(
     combination time per frame of the shipped configs, and the fused dot another 0.70–0.78× of the
     whole shading call of the configs with a sphere light (BENCHMARKS.md, "Rendering"). Their
     normals' cotangents all flow to receiver 0.
+
+    ``light_fractions`` (``method.light_visibility = "images"``): per sphere light, the visible
+    fraction (N,) of :func:`light_visible_fractions`; each light's term is then its exact unoccluded
+    irradiance times that fraction, whatever the shading, and ``vis`` serves the environment only.
     """
     n = scene.method.sh_bands
     ratio = scene.method.shading == "ratio"
@@ -664,8 +764,12 @@ def combine(
                 finish,
             )
 
-    for light in scene.lights:
+    for j, light in enumerate(scene.lights):
         one = jnp.ones((1,), dtype)
+        if light_fractions is not None:
+            exact = sphere_light_irradiance(light.center, light.radius, one, points, normals)
+            e = e + exact * light_fractions[j][:, None].astype(dtype) * light.radiance
+            continue
         if ratio:
             exact = sphere_light_irradiance(light.center, light.radius, one, points, normals)
         if ratio and not vis:
@@ -738,8 +842,17 @@ def render_at(scene: Scene, t, bsvs: tuple[BSV | None, ...] | None = None, spher
     points, normals = receivers_at_time(scene, t)
     vis, dist = occluder_visibilities(scene, bsvs, points, own)
     shared = shared_normal_count(scene.receivers.normals)  # the plane's receivers lead `points`
+    images = scene_images(scene, t)
+    fractions = None if images is None else light_visible_fractions(scene, images, points, normals)
     e = combine(
-        scene, points, normals, vis, dist, analytic_spheres=sphere_path == "analytic", shared_normal=shared
+        scene,
+        points,
+        normals,
+        vis,
+        dist,
+        analytic_spheres=sphere_path == "analytic",
+        shared_normal=shared,
+        light_fractions=fractions,
     )
     radiance = e * (scene.receivers.albedo / math.pi)
     return RenderResult(points=points, normals=normals, irradiance=e, radiance=radiance)

@@ -25,6 +25,7 @@ from ._schema import (
     BSV_GRADIENTS,
     ENVIRONMENT_TYPES,
     LIGHT_TYPES,
+    LIGHT_VISIBILITIES,
     MESH_SHAPES,
     MODELS,
     OCCLUDER_TYPES,
@@ -190,6 +191,8 @@ _METHOD_KEYS = (
     "bsv_gradient",
     "self_visibility",
     "self_visibility_grid",
+    "light_visibility",
+    "light_cap",
 )
 
 
@@ -218,6 +221,8 @@ def _method(t: _Table) -> MethodConfig:
         bsv_gradient=t.string("bsv_gradient", "auto", choices=BSV_GRADIENTS),
         self_visibility=t.string("self_visibility", "field", choices=SELF_VISIBILITIES),
         self_visibility_grid=t.integers("self_visibility_grid", 2, [12, 48], lo=2),
+        light_visibility=t.string("light_visibility", "sh", choices=LIGHT_VISIBILITIES),
+        light_cap=t.integers("light_cap", 2, [4, 8], lo=1),
     )
     try:
         return MethodConfig(**cfg)

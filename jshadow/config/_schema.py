@@ -20,6 +20,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from ..entities import BSV_GRADIENTS as BSV_GRADIENTS
+from ..entities import LIGHT_VISIBILITIES as LIGHT_VISIBILITIES
 from ..entities import SELF_VISIBILITIES as SELF_VISIBILITIES
 from ..entities import Method
 from ._errors import ConfigError
@@ -91,7 +92,10 @@ class MethodConfig(eqx.Module):
     "image" (visibility in the BSV's vertex derivative, see :class:`jshadow.entities.Method`),
     ``self_visibility`` "field" | "rays" (an occluder's visibility at its own vertices with
     ``self_shadow``: extrapolated by the field, or cast from each vertex) and
-    ``self_visibility_grid`` (θ, φ) ray directions over each vertex's normal hemisphere for "rays".
+    ``self_visibility_grid`` (θ, φ) ray directions over each vertex's normal hemisphere for "rays",
+    ``light_visibility`` "sh" | "images" (how mesh occluders shadow sphere lights: the field's SH,
+    or rays to the light looked up in the BSV's images) and ``light_cap`` (rings, sectors) of those
+    rays per light.
     """
 
     preset: str = eqx.field(static=True, default="default")
@@ -109,6 +113,8 @@ class MethodConfig(eqx.Module):
     bsv_gradient: str = eqx.field(static=True, default="auto")
     self_visibility: str = eqx.field(static=True, default="field")
     self_visibility_grid: tuple[int, int] = eqx.field(static=True, default=(12, 48))
+    light_visibility: str = eqx.field(static=True, default="sh")
+    light_cap: tuple[int, int] = eqx.field(static=True, default=(4, 8))
 
     def __check_init__(self):
         if self.model not in MODELS:
@@ -135,6 +141,8 @@ class MethodConfig(eqx.Module):
                 bsv_gradient=self.bsv_gradient,
                 self_visibility=self.self_visibility,
                 self_visibility_grid=tuple(self.self_visibility_grid),
+                light_visibility=self.light_visibility,
+                light_cap=tuple(self.light_cap),
             )
         except (ValueError, TypeError) as err:
             raise ConfigError(None, None, str(err)) from None

@@ -3,7 +3,8 @@
 * :mod:`._projected_cap`: sphere lights sampled in proportion to projected solid angle
   (Peters & Dachsbacher 2019, "Sampling Projected Spherical Caps in Real Time"), all three cases,
   with the density of an arbitrary direction.
-* :mod:`._cone`: uniform cone (solid-angle) sampling of a sphere, the baseline.
+* :mod:`._cone`: uniform cone (solid-angle) sampling of a sphere, the baseline, and its
+  stratified midpoint nodes (the shadow field's sphere-light lookup).
 * :mod:`._hemisphere`: cosine-weighted hemisphere sampling.
 * :mod:`._envmap`: luminance importance sampling of lat-long environment maps.
 
@@ -15,6 +16,7 @@ wrapper that draws them from a PRNG key; all return a :class:`CapSample` (direct
 from ._cone import random_sphere_cone as random_sphere_cone
 from ._cone import sample_sphere_cone as sample_sphere_cone
 from ._cone import sphere_cone_pdf as sphere_cone_pdf
+from ._cone import stratified_sphere_cone as stratified_sphere_cone
 from ._envmap import EnvironmentSampler as EnvironmentSampler
 from ._envmap import environment_pdf as environment_pdf
 from ._envmap import environment_sampler as environment_sampler

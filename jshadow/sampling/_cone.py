@@ -17,7 +17,7 @@ from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
 from .._numerics import safe_div, safe_normalize, safe_sqrt
 from ._projected_cap import CapSample, _check3, _tangent
 
-__all__ = ["sample_sphere_cone", "random_sphere_cone", "sphere_cone_pdf"]
+__all__ = ["sample_sphere_cone", "random_sphere_cone", "sphere_cone_pdf", "stratified_sphere_cone"]
 
 
 def _cone(to_center, radius):
@@ -80,3 +80,37 @@ def sphere_cone_pdf(
     dd = w.astype(axis.dtype) - axis
     in_cone = jnp.sum(dd * dd, axis=-1) <= 2.0 * omc
     return jnp.where(in_cone & ~inside, safe_div(1.0, 2.0 * jnp.pi * omc), 0.0)
+
+
+def stratified_sphere_cone(
+    to_center: Float[ArrayLike, "... 3"],
+    radius: Float[ArrayLike, "..."] | float,
+    strata: tuple[int, int] = (4, 8),
+) -> Float[Array, "... K 3"]:
+    """K = rings × sectors directions into the cone toward a sphere, one per stratum.
+
+    Deterministic quadrature nodes, uniform in solid angle: the centre of each of ``strata`` =
+    (rings, sectors) equal-area cells in (cos θ, φ) about the axis ``to_center/|to_center|``
+    (``1 − cos θ = (i + ½)/rings · (1 − cos α)``, ``φ = 2π(j + ½)/sectors``), so an average over
+    them is a midpoint rule for the mean over the cap. Inside the sphere (``|to_center| ≤ r``) the
+    cap is the whole sphere (``1 − cos α = 2``). Batches over the leading axes of ``to_center``
+    and ``radius``; no NaN for a zero ``to_center`` (any axis then).
+    """
+    rings, sectors = strata
+    if not (isinstance(rings, int) and isinstance(sectors, int) and rings >= 1 and sectors >= 1):
+        raise ValueError(f"strata must be two positive ints (rings, sectors), got {strata!r}")
+    axis, omc, inside = _cone(to_center, radius)
+    omc = jnp.where(inside, 2.0, omc)
+    dtype = axis.dtype
+    one_m_ct = omc[..., None] * ((jnp.arange(rings, dtype=dtype) + 0.5) / rings)  # (..., R)
+    ct = 1.0 - one_m_ct
+    st = safe_sqrt(one_m_ct * (2.0 - one_m_ct))
+    phi = 2.0 * jnp.pi * (jnp.arange(sectors, dtype=dtype) + 0.5) / sectors  # (S,)
+    t1 = _tangent(axis)
+    t2 = jnp.cross(axis, t1)
+    d = (
+        (st[..., :, None, None] * jnp.cos(phi)[:, None]) * t1[..., None, None, :]
+        + (st[..., :, None, None] * jnp.sin(phi)[:, None]) * t2[..., None, None, :]
+        + ct[..., :, None, None] * axis[..., None, None, :]
+    )
+    return safe_normalize(d.reshape(*d.shape[:-3], rings * sectors, 3))

@@ -11,6 +11,7 @@
   visibility of each silhouette point from the winding number of the projected silhouette (exact;
   11–31× faster than the ray-cast visibility on whole frames).
 * :mod:`._own`: a mesh's visibility of itself at its own vertices, by rays (self-shadowing).
+* :mod:`._images`: single rays looked up in the BSV's occlusion images (sharp sphere-light shadows).
 """
 
 from ._bsv import BSV as BSV
@@ -35,6 +36,9 @@ from ._edgescan_grad import bsv_mesh_edgescan_diff as bsv_mesh_edgescan_diff
 from ._edgescan_grad import edgescan_grad_slots as edgescan_grad_slots
 from ._frames import bsv_frames as bsv_frames
 from ._frames import bsv_grid_angles as bsv_grid_angles
+from ._images import OcclusionImages as OcclusionImages
+from ._images import image_ray_visibility as image_ray_visibility
+from ._images import occlusion_images as occlusion_images
 from ._own import vertex_visibility_sh as vertex_visibility_sh
 from ._raycast import ray_fan_any_hit as ray_fan_any_hit
 from ._raycast import ray_sphere_any_hit as ray_sphere_any_hit
