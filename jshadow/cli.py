@@ -202,6 +202,7 @@ def cmd_render(args) -> int:
         "median_ms": {k: float(np.median([fr[k] for fr in warm])) for k in warm[0] if k.endswith("_ms")},
         "bsv_computations": renderer.bsv_computations,
         "self_visibility_computations": renderer.self_visibility_computations,
+        "light_image_computations": renderer.image_computations,
         "wall_s_including_pictures": wall,
         "per_frame": frames,
     }
@@ -216,6 +217,7 @@ def cmd_render(args) -> int:
     m = summary["median_ms"]
     split = f" = field {m['field_ms']:.1f} + combine {m['combine_ms']:.1f}" if "field_ms" in m else ""
     own = f", own-vertex rays {m['self_visibility_ms']:.1f}" if "self_visibility_ms" in m else ""
+    own += f", light images {m['light_images_ms']:.1f}" if "light_images_ms" in m else ""
     print(
         f"rendered {len(frames)} frame(s), {summary['receivers']} receivers -> {out}  "
         f"(warm median {m['total_ms']:.1f} ms/frame: BSV {m['bsv_ms']:.1f}{own}, "
@@ -350,7 +352,7 @@ def cmd_fit(args) -> int:
     from .entities import frame_time
     from .optim import fit_params, plane_radiance
     from .picture import exposure_for
-    from .scene import SELF_RAYS_NO_DERIVATIVE
+    from .scene import LIGHT_IMAGES_NO_DERIVATIVE, SELF_RAYS_NO_DERIVATIVE
 
     cfg, scene0 = _load(args.config)
     fit = cfg.fit
@@ -392,8 +394,8 @@ def cmd_fit(args) -> int:
             frame=frame,
             regularization=fit.regularization,
         )
-    except ValueError as err:  # a fitted mesh parameter with self_visibility = "rays"
-        if str(err) != SELF_RAYS_NO_DERIVATIVE:
+    except ValueError as err:  # a fitted geometric parameter through binary lookups or rays
+        if str(err) not in (SELF_RAYS_NO_DERIVATIVE, LIGHT_IMAGES_NO_DERIVATIVE):
             raise
         raise UsageError(f"{args.config}: {err}") from None
     report = {

@@ -44,6 +44,7 @@ from .scene import (
     combine,
     light_visible_fractions,
     occluder_bsv,
+    occluder_bsv_and_images,
     occluder_images,
     occluder_own_visibility,
     occluder_visibilities,
@@ -231,6 +232,7 @@ class Renderer:
         # do not change, every frame for those that deform (tests check the reuse)
         self._uses_images = uses_light_images(scene)
         self._static_images: dict[int, object] = {}
+        self._fresh_images: dict[int, object] = {}  # this frame's, made with its BSV (one edge-scan)
         self.image_computations = 0
 
     def _bsvs(self, t):
@@ -242,7 +244,12 @@ class Renderer:
                     self.bsv_computations += self._static_bsvs[i] is not None
                 out.append(self._static_bsvs[i])
             else:
-                out.append(occluder_bsv(occ, t, self.scene, self.sphere_path, False))
+                both = occluder_bsv_and_images(occ, t, self.scene) if self._uses_images else None
+                if both is None:
+                    out.append(occluder_bsv(occ, t, self.scene, self.sphere_path, False))
+                else:  # a deforming mesh whose images are needed too: one edge-scan for both
+                    out.append(both[0])
+                    self._fresh_images[i] = both[1]
                 self.bsv_computations += 1
         return tuple(out)
 
@@ -271,7 +278,10 @@ class Renderer:
         return rows, self._owners
 
     def _images(self, t):
-        """The frame's occlusion images per occluder (None unless the scene uses them)."""
+        """The frame's occlusion images per occluder (None unless the scene uses them): once for a
+        shape that does not change; for a deforming mesh sampled by the edge-scan, made by
+        :meth:`_bsvs` in the same pass as its BSV (so ``light_images_ms`` is about 0 and
+        ``bsv_ms`` holds both)."""
         if not self._uses_images:
             return None
         out = []
@@ -279,6 +289,10 @@ class Renderer:
             static = shape_is_static(occ)
             if static and i in self._static_images:
                 out.append(self._static_images[i])
+                continue
+            if i in self._fresh_images:  # made with this frame's BSV
+                out.append(self._fresh_images.pop(i))
+                self.image_computations += 1
                 continue
             img = occluder_images(occ, 0.0 if static else t, self.scene)
             self.image_computations += img is not None

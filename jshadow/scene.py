@@ -30,7 +30,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from . import sh
-from ._numerics import safe_norm
+from ._numerics import safe_norm, safe_normalize
 from .entities import MeshOccluder, Scene, SphereOccluder, frame_time, receivers_at_time
 from .field import bsv_visibility_and_distance, sphere_light_blocked, sphere_visibility_sh, unit_visibility
 from .geometry import bounding_sphere
@@ -54,9 +54,10 @@ from .visibility import (
     bsv_mesh_edgescan_diff,
     bsv_silhouette_counts,
     bsv_sphere,
+    bsv_with_occlusion_images,
     edgescan_grad_slots,
     edgescan_slots,
-    image_ray_visibility,
+    image_fan_visibility,
     is_closed_manifold,
     occlusion_images,
     ray_sphere_any_hit,
@@ -77,6 +78,7 @@ __all__ = [
     "own_rows_at_time",
     "uses_light_images",
     "occluder_images",
+    "occluder_bsv_and_images",
     "scene_images",
     "light_visible_fractions",
     "Lighting",
@@ -433,8 +435,13 @@ LIGHT_IMAGES_NO_DERIVATIVE = (
 
 def uses_light_images(scene: Scene) -> bool:
     """Whether sphere lights are shadowed through the occlusion images
-    (``method.light_visibility = "images"`` and the scene has sphere lights)."""
-    return scene.method.light_visibility == "images" and bool(scene.lights)
+    (``method.light_visibility = "images"``, and the scene has sphere lights and a mesh occluder:
+    with sphere occluders only, the analytic path's exact lens of two caps is used as it is)."""
+    return (
+        scene.method.light_visibility == "images"
+        and bool(scene.lights)
+        and any(isinstance(o, MeshOccluder) for o in scene.occluders)
+    )
 
 
 def occluder_images(occ, t, scene: Scene) -> OcclusionImages | None:
@@ -452,6 +459,21 @@ def occluder_images(occ, t, scene: Scene) -> OcclusionImages | None:
         return occlusion_images(x, faces, tuple(m.bsv_grid), tuple(m.directions), float(m.shell))
 
     return _no_derivative_guard(forward, v, LIGHT_IMAGES_NO_DERIVATIVE)
+
+
+def occluder_bsv_and_images(occ: MeshOccluder, t, scene: Scene) -> tuple[BSV, OcclusionImages] | None:
+    """The BSV (without derivative machinery, as ``occluder_bsv(..., differentiable=False)``) and
+    the occlusion images of a mesh occluder at a concrete time from one edge-scan
+    (:func:`jshadow.visibility.bsv_with_occlusion_images`), or None where the method does not
+    sample this mesh with the edge-scan (then the two are computed apart)."""
+    m = scene.method
+    faces = _concrete(occ.faces)
+    if faces is None or not _uses_edgescan(m, faces):
+        return None
+    v = _vertices_at(occ, jnp.asarray(t, occ.unit_vertices.dtype))
+    if _concrete(v) is None:
+        return None
+    return bsv_with_occlusion_images(v, faces, m.field_bands, m.bsv_grid, m.directions, m.shell)
 
 
 def scene_images(scene: Scene, t) -> tuple[OcclusionImages | None, ...] | None:
@@ -472,10 +494,10 @@ def light_visible_fractions(
     ``F = Σ_k V(x, ω_k) cos⁺_k / Σ_k cos⁺_k`` over the ``method.light_cap`` stratified directions
     ω_k of the light's cap (:func:`jshadow.sampling.stratified_sphere_cone`). ``V`` multiplies, per
     direction, every occluder whose centre is nearer than the light's: a mesh occluder looked up in
-    its ``images`` (:func:`jshadow.visibility.image_ray_visibility`), a sphere occluder by an exact
-    ray test. A receiver that sees none of the cap above its horizon gets F = 1 (its exact
-    unoccluded irradiance is 0 anyway). Differentiating with respect to the geometry raises
-    :data:`LIGHT_IMAGES_NO_DERIVATIVE`.
+    its ``images`` (:func:`jshadow.visibility.image_fan_visibility`, grid points chosen around the
+    ray to the light's centre), a sphere occluder by an exact ray test. A receiver that sees none
+    of the cap above its horizon gets F = 1 (its exact unoccluded irradiance is 0 anyway).
+    Differentiating with respect to the geometry raises :data:`LIGHT_IMAGES_NO_DERIVATIVE`.
     """
     strata = tuple(scene.method.light_cap)
     geometry = (
@@ -500,7 +522,7 @@ def light_visible_fractions(
                     v = 1.0 - ray_sphere_any_hit(pts[:, None, :], dirs, c, r).astype(pts.dtype)
                 else:
                     c = img.center
-                    v = image_ray_visibility(img, pts[:, None, :], dirs)
+                    v = image_fan_visibility(img, pts, dirs, safe_normalize(lc - pts))
                 vis = vis * jnp.where((safe_norm(pts - c) < d_l)[:, None], v, 1.0)
             cos = jnp.maximum(jnp.sum(dirs * nrm[:, None, :], -1), 0.0)
             den = jnp.sum(cos, -1)

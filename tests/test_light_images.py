@@ -7,10 +7,13 @@ and a sphere light through the images match the closed-form lens of the analytic
 1.5 % relative RMSE, where the n-band path is off by more than 3 %; ``render`` and the Renderer's
 one-call, split and chunked paths agree, images are made once for a rigid shape and every frame
 for a deforming one; derivatives with respect to geometry raise, with respect to radiance work,
-and the lookup's own gradient is finite at its singular points; config keys are read and checked.
+and the lookup's own gradient is finite at its singular points; config keys are read and checked;
+``jshadow render`` reports the images' time and count, ``jshadow fit`` of a light position says in
+one line that the option has no derivative; sphere occluders alone keep the exact lens.
 """
 
 import dataclasses
+import json
 import math
 
 import jax
@@ -26,7 +29,7 @@ from jshadow.geometry import Twist
 from jshadow.runner import Renderer
 from jshadow.sampling import stratified_sphere_cone
 from jshadow.scene import render
-from jshadow.visibility import image_ray_visibility, occlusion_images, ray_fan_any_hit
+from jshadow.visibility import image_fan_visibility, image_ray_visibility, occlusion_images, ray_fan_any_hit
 
 IMAGES = dataclasses.replace(SMALL, light_visibility="images")
 LIGHT = SphereLight(f32(1.2, 3.2, 0.6), jnp.float32(0.45), f32(30.0, 30.0, 30.0))
@@ -75,6 +78,12 @@ def test_lookup_agrees_with_exact_rays_on_a_convex_mesh(rng):
     assert 0.2 < exact.mean() < 0.8  # both outcomes are well represented
     wrong = np.abs(looked - exact) > 0.5
     assert wrong.mean() < 0.03, wrong.mean()  # only rays within a pixel of the silhouette
+    # fans sharing their grid points (chosen around an axis ray) agree with the per-ray lookup
+    axis = jnp.asarray([0.0, 1.1, 0.0]) - pts
+    axis = axis / jnp.linalg.norm(axis, axis=-1, keepdims=True)
+    fan = np.asarray(image_fan_visibility(img, pts, dirs, axis), np.float64)
+    assert np.mean(np.abs(fan - looked)) < 0.03
+    assert np.mean(np.abs(fan - exact) > 0.5) < 0.04
     # a ray whose line misses the bounding sphere, or that points away from it, is free
     away = image_ray_visibility(img, pts[:, None, :], -dirs)
     np.testing.assert_array_equal(np.asarray(away), 1.0)
@@ -127,8 +136,12 @@ def test_paths_agree_and_images_are_reused():
     )
     r = Renderer(twist)
     for f in range(3):
-        r.frame(f)
-    assert r.image_computations == 3
+        got, times = r.frame(f)
+    assert r.image_computations == 3 and r.bsv_computations == 3
+    # a deforming mesh's images come from its BSV's edge-scan pass (bsv_with_occlusion_images):
+    # the same numbers as computing them apart, as render() does
+    want = np.asarray(render(twist, 2).irradiance)
+    np.testing.assert_allclose(np.asarray(got.irradiance), want, atol=1e-5 * float(np.abs(want).max()))
 
 
 def test_derivatives_with_respect_to_geometry_raise_and_radiance_works():
@@ -185,3 +198,39 @@ def test_config_keys_are_read_and_checked():
     with pytest.raises(ValueError, match="shell > 1"):
         Method(light_visibility="images", shell=1.0)
     assert math.isclose(Method().light_cap[0] * Method().light_cap[1], 32)
+
+
+EGG_LIGHT = (
+    '[method]\ndirections = [8, 8]\nbsv_grid = [6, 8]\nlight_visibility = "images"\nlight_cap = [2, 4]\n'
+    '[environment]\ntype = "constant"\nradiance = [0.2, 0.2, 0.2]\n'
+    '[[occluder]]\ntype = "mesh"\nshape = "egg"\nsubdivisions = 1\ncenter = [0.0, 1.0, 0.0]\nradius = 0.5\n'
+    '[[light]]\ntype = "sphere"\ncenter = [0.5, 3.0, 0.2]\nradius = 0.3\nradiance = [10.0, 10.0, 10.0]\n'
+    '[receiver]\ntype = "plane"\ncenter = [0.0, 0.0, 0.0]\nsize = [3.0, 3.0]\nresolution = [4, 4]\n'
+)
+
+
+def test_cli_render_reports_the_images_and_fit_refuses_geometry(tmp_path, capsys):
+    from jshadow.cli import main
+
+    cfg = tmp_path / "egg.toml"
+    cfg.write_text(EGG_LIGHT + "[animation]\nframes = 2\n")
+    assert main(["render", str(cfg), "--out", str(tmp_path / "r")]) == 0
+    t = json.loads((tmp_path / "r" / "timings.json").read_text())
+    assert t["light_image_computations"] == 1 and t["bsv_computations"] == 1  # a rigid egg: once
+    assert all("light_images_ms" in f for f in t["per_frame"])
+    assert "light images" in capsys.readouterr().out
+    fit = tmp_path / "fit.toml"
+    fit.write_text(
+        EGG_LIGHT + '[fit]\nparams = ["light.0.center"]\ntarget_values = [[0.0, 3.0, 0.0]]\nsteps = 2\n'
+    )
+    assert main(["fit", str(fit), "--out", str(tmp_path / "f")]) == 2
+    err = [line for line in capsys.readouterr().err.splitlines() if "error" in line]  # not the progress bar
+    assert len(err) == 1 and err[0].startswith("jshadow fit: error: ")
+    assert "light_visibility = 'sh'" in err[0]
+
+
+def test_sphere_occluders_alone_keep_the_exact_lens():
+    """With no mesh occluder there are no images to look up: the analytic path's exact lens is kept."""
+    scene = _light_scene(SphereOccluder(f32(0.0, 1.1, 0.0), jnp.float32(0.6)), IMAGES, n=6)
+    lens = render(dataclasses.replace(scene, method=SMALL)).irradiance
+    np.testing.assert_array_equal(np.asarray(render(scene).irradiance), np.asarray(lens))

@@ -74,6 +74,7 @@ __all__ = [
     "edgescan_occlusion",
     "edgescan_slots",
     "bsv_mesh_edgescan",
+    "bsv_and_occlusion_edgescan",
 ]
 
 _WORD = 32  # edges per packed word
@@ -731,6 +732,42 @@ def bsv_mesh_edgescan(
 
         coeffs = lax.cond(overflow, brute, lambda v: coeffs, vertices)
     return BSV(coeffs, center, radius, shell * radius)
+
+
+def bsv_and_occlusion_edgescan(
+    vertices: Float[ArrayLike, "V 3"],
+    faces: Int[ArrayLike, "F 3"],
+    n: int = 4,
+    grid: tuple[int, int] = (12, 20),
+    directions: tuple[int, int] = (32, 32),
+    shell: float = 1.5,
+) -> tuple[BSV, Bool[Array, "T P Ny Nx"]]:
+    """:func:`bsv_mesh_edgescan` and :func:`edgescan_occlusion` of the same pose from one pass.
+
+    Both are finishes of the same difference images, so a caller that needs the SH and the
+    binary images (``light_visibility = "images"`` on a deforming mesh) pays for one edge-scan.
+    Same values as the two functions called apart; concrete vertices only (overflows repaired as
+    there).
+    """
+    if not (isinstance(n, int | np.integer) and n >= 1):
+        raise ValueError(f"n (number of SH bands) must be a positive int, got {n!r}")
+    if isinstance(vertices, jax.core.Tracer):
+        raise TypeError(
+            "bsv_and_occlusion_edgescan takes concrete vertices (call the two functions under jit)"
+        )
+    vertices, faces, table, grid, directions, shell, slots = _resolve(
+        vertices, faces, grid, directions, shell, None, None
+    )
+    basis_w = _basis_weights(directions, shell, int(n), vertices.dtype)
+
+    def finish(diff):
+        occ = jnp.swapaxes(_stage_occlusion(diff), -1, -2).reshape(*grid, *directions)
+        return _stage_sh(diff, basis_w, n=int(n), grid=grid), occ
+
+    (coeffs, occ), _, center, radius = _compute(
+        vertices, faces, table, grid, directions, shell, slots, finish
+    )
+    return BSV(coeffs, center, radius, shell * radius), occ
 
 
 @lru_cache(maxsize=32)

@@ -42,10 +42,17 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from .._numerics import safe_atan2, safe_div, safe_sqrt
 from ..geometry import bounding_sphere
-from ._edgescan import edgescan_occlusion
+from ._bsv import BSV
+from ._edgescan import bsv_and_occlusion_edgescan, edgescan_occlusion
 from ._frames import bsv_grid_angles
 
-__all__ = ["OcclusionImages", "occlusion_images", "image_ray_visibility"]
+__all__ = [
+    "OcclusionImages",
+    "occlusion_images",
+    "bsv_with_occlusion_images",
+    "image_ray_visibility",
+    "image_fan_visibility",
+]
 
 
 class OcclusionImages(eqx.Module):
@@ -81,6 +88,20 @@ def occlusion_images(
     occ, _ = edgescan_occlusion(v, faces, tuple(grid), tuple(directions), shell)
     c, r = bounding_sphere(v)
     return OcclusionImages(occluded=occ, center=c, radius=r, shell=float(shell))
+
+
+def bsv_with_occlusion_images(
+    vertices: Float[ArrayLike, "V 3"],
+    faces: Int[ArrayLike, "F 3"],
+    n: int = 4,
+    grid: tuple[int, int] = (12, 20),
+    directions: tuple[int, int] = (32, 32),
+    shell: float = 1.5,
+) -> tuple[BSV, OcclusionImages]:
+    """The edge-scan BSV (n bands) and the occlusion images of one pose from a single edge-scan
+    (:func:`jshadow.visibility.bsv_and_occlusion_edgescan`); concrete vertices only."""
+    bsv, occ = bsv_and_occlusion_edgescan(vertices, faces, n, tuple(grid), tuple(directions), shell)
+    return bsv, OcclusionImages(occluded=occ, center=bsv.center, radius=bsv.radius, shell=float(shell))
 
 
 @jax.jit
@@ -149,4 +170,83 @@ def image_ray_visibility(
             pyi = jnp.clip(py, 0, ny - 1).astype(jnp.int32)
             hit = flat[((ii * p_n + jj) * ny + pyi) * nx + pxi] & inside
             vis = vis + (wi * wj) * (1.0 - hit.astype(dtype))
+    return jnp.where(meets, vis, 1.0)
+
+
+@jax.jit
+def image_fan_visibility(
+    images: OcclusionImages,
+    origins: Float[ArrayLike, "N 3"],
+    dirs: Float[ArrayLike, "N K 3"],
+    axis: Float[ArrayLike, "N 3"],
+) -> Float[Array, "N K"]:
+    """:func:`image_ray_visibility` of fans of K rays sharing an origin, the four grid points
+    chosen once per fan: around the shell entry of the unit ``axis`` ray (for a light, the
+    direction to its centre; for an axis that misses the shell, around the direction of its
+    closest approach). Each ray is still looked up toward its own focal point and tested against
+    the bounding sphere, so only the grid points and their bilinear weights are shared. For the
+    small caps of lights this is the per-ray lookup up to 0.4 % of the rays' mean visibility (the
+    airplane's light over a 128² plane) at a fifth of its time: per (ray, grid point) a 3 × 3
+    frame product, two divisions and one gather, with no trigonometry or table gathers per ray.
+    """
+    origins, dirs, axis = jnp.asarray(origins), jnp.asarray(dirs), jnp.asarray(axis)
+    dtype = jnp.result_type(origins, dirs, images.center)
+    origins, dirs, axis = origins.astype(dtype), dirs.astype(dtype), axis.astype(dtype)
+    t_n, p_n, ny, nx = images.occluded.shape
+    flat = images.occluded.reshape(-1)
+    r = images.radius.astype(dtype)
+    big_r = images.shell * r
+    tan_a = math.tan(math.asin(1.0 / images.shell))
+    rel = origins - images.center.astype(dtype)
+    rx, ry, rz = rel[:, 0], rel[:, 1], rel[:, 2]
+    ax, ay, az = axis[:, 0], axis[:, 1], axis[:, 2]
+    b0 = rx * ax + ry * ay + rz * az
+    rr = rx * rx + ry * ry + rz * rz
+    t0 = -b0 - safe_sqrt(b0 * b0 - (rr - big_r * big_r))
+    # an axis that misses the shell: its point nearest c (t0 = −b0), whose direction is used
+    ex, ey, ez = rx + t0 * ax, ry + t0 * ay, rz + t0 * az
+    u_z = jnp.clip(safe_div(ez, safe_sqrt(ex * ex + ey * ey + ez * ez)), -1.0, 1.0)
+    theta = safe_atan2(safe_sqrt(1.0 - u_z * u_z), u_z)
+    phi = safe_atan2(ey, ex)
+    gi = theta * (t_n / math.pi) - 0.5
+    gj = phi * (p_n / (2.0 * math.pi))
+    i0, j0 = jnp.floor(gi), jnp.floor(gj)
+    fi, fj = gi - i0, gj - j0
+    i0, j0 = i0.astype(jnp.int32), j0.astype(jnp.int32)
+    th, ph = bsv_grid_angles(t_n, p_n, dtype)
+    sin_t, cos_t, sin_p, cos_p = jnp.sin(th), jnp.cos(th), jnp.sin(ph), jnp.cos(ph)
+    dx, dy, dz = dirs[..., 0], dirs[..., 1], dirs[..., 2]
+    b = rx[:, None] * dx + ry[:, None] * dy + rz[:, None] * dz
+    meets = (b * b - (rr[:, None] - r * r) > 0) & (b < 0)
+    vis = jnp.zeros(b.shape, dtype)
+    for di in (0, 1):
+        ii = jnp.clip(i0 + di, 0, t_n - 1)
+        wi = fi if di else 1.0 - fi
+        st, ct = sin_t[ii], cos_t[ii]
+        for dj in (0, 1):
+            jj = jnp.mod(j0 + dj, p_n)
+            wj = fj if dj else 1.0 - fj
+            sp, cp = sin_p[jj], cos_p[jj]
+            # the grid point's frame (bsv_frames): x = (ct cp, ct sp, −st), y = (sp, −cp, 0), z = −u;
+            # local coordinates of q − R·u = rel − b·d − R·u, where frameᵀ u = (0, 0, −1)
+            xr = (rx * cp + ry * sp) * ct - rz * st
+            yr = rx * sp - ry * cp
+            zr = -((rx * cp + ry * sp) * st + rz * ct) + big_r
+            xd = (dx * cp[:, None] + dy * sp[:, None]) * ct[:, None] - dz * st[:, None]
+            yd = dx * sp[:, None] - dy * cp[:, None]
+            zd = -((dx * cp[:, None] + dy * sp[:, None]) * st[:, None] + dz * ct[:, None])
+            xl = xr[:, None] - b * xd
+            yl = yr[:, None] - b * yd
+            zl = zr[:, None] - b * zd
+            front = zl > 0
+            x = safe_div(xl, zl)
+            y = safe_div(yl, zl)
+            px = jnp.floor((x + tan_a) * (nx / (2.0 * tan_a)))
+            py = jnp.floor((y + tan_a) * (ny / (2.0 * tan_a)))
+            inside = front & (px >= 0) & (px < nx) & (py >= 0) & (py < ny)
+            pxi = jnp.clip(px, 0, nx - 1).astype(jnp.int32)
+            pyi = jnp.clip(py, 0, ny - 1).astype(jnp.int32)
+            k = (ii * p_n + jj)[:, None]
+            hit = flat[(k * ny + pyi) * nx + pxi] & inside
+            vis = vis + (wi * wj)[:, None] * (1.0 - hit.astype(dtype))
     return jnp.where(meets, vis, 1.0)
