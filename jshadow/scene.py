@@ -43,7 +43,7 @@ from .lights import (
     sphere_light_irradiance,
     sphere_light_sh,
 )
-from .sampling import stratified_sphere_cone
+from .sampling import stratified_cone_components
 from .scaling import MkTable, mk_table
 from .visibility import (
     BSV,
@@ -57,7 +57,7 @@ from .visibility import (
     bsv_with_occlusion_images,
     edgescan_grad_slots,
     edgescan_slots,
-    image_fan_visibility,
+    image_fan_visibility_components,
     is_closed_manifold,
     occlusion_images,
     ray_sphere_any_hit,
@@ -513,18 +513,21 @@ def light_visible_fractions(
         blockers = [(img, None) if img is not None else (None, next(it)) for img in images]
         out = []
         for lc, lr in lights:
-            dirs = stratified_sphere_cone(lc - pts, lr, strata)  # (N, K, 3)
+            # component-wise (N, K) arrays throughout: XLA:CPU is slow on (N, K, 3) layouts
+            dx, dy, dz = stratified_cone_components(lc - pts, lr, strata)
+            axis = safe_normalize(lc - pts)
             d_l = safe_norm(pts - lc)
-            vis = jnp.ones(dirs.shape[:2], pts.dtype)
+            vis = jnp.ones(dx.shape, pts.dtype)
             for img, sphere in blockers:
                 if img is None:
                     c, r = sphere
+                    dirs = jnp.stack([dx, dy, dz], -1)
                     v = 1.0 - ray_sphere_any_hit(pts[:, None, :], dirs, c, r).astype(pts.dtype)
                 else:
                     c = img.center
-                    v = image_fan_visibility(img, pts, dirs, safe_normalize(lc - pts))
+                    v = image_fan_visibility_components(img, pts, (dx, dy, dz), axis)
                 vis = vis * jnp.where((safe_norm(pts - c) < d_l)[:, None], v, 1.0)
-            cos = jnp.maximum(jnp.sum(dirs * nrm[:, None, :], -1), 0.0)
+            cos = jnp.maximum(nrm[:, 0:1] * dx + nrm[:, 1:2] * dy + nrm[:, 2:3] * dz, 0.0)
             den = jnp.sum(cos, -1)
             out.append(jnp.where(den > 0, jnp.sum(vis * cos, -1) / jnp.where(den > 0, den, 1.0), 1.0))
         return out

@@ -16,6 +16,7 @@ wrapper that draws them from a PRNG key; all return a :class:`CapSample` (direct
 from ._cone import random_sphere_cone as random_sphere_cone
 from ._cone import sample_sphere_cone as sample_sphere_cone
 from ._cone import sphere_cone_pdf as sphere_cone_pdf
+from ._cone import stratified_cone_components as stratified_cone_components
 from ._cone import stratified_sphere_cone as stratified_sphere_cone
 from ._envmap import EnvironmentSampler as EnvironmentSampler
 from ._envmap import environment_pdf as environment_pdf

@@ -17,7 +17,13 @@ from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
 from .._numerics import safe_div, safe_normalize, safe_sqrt
 from ._projected_cap import CapSample, _check3, _tangent
 
-__all__ = ["sample_sphere_cone", "random_sphere_cone", "sphere_cone_pdf", "stratified_sphere_cone"]
+__all__ = [
+    "sample_sphere_cone",
+    "random_sphere_cone",
+    "sphere_cone_pdf",
+    "stratified_sphere_cone",
+    "stratified_cone_components",
+]
 
 
 def _cone(to_center, radius):
@@ -82,6 +88,30 @@ def sphere_cone_pdf(
     return jnp.where(in_cone & ~inside, safe_div(1.0, 2.0 * jnp.pi * omc), 0.0)
 
 
+def stratified_cone_components(
+    to_center: Float[ArrayLike, "... 3"],
+    radius: Float[ArrayLike, "..."] | float,
+    strata: tuple[int, int] = (4, 8),
+) -> tuple[Float[Array, "... K"], Float[Array, "... K"], Float[Array, "... K"]]:
+    """:func:`stratified_sphere_cone` as three (..., K) arrays of x, y and z components (what a
+    caller that works component-wise wants: XLA:CPU is slow on (..., K, 3) layouts)."""
+    rings, sectors = strata
+    if not (isinstance(rings, int) and isinstance(sectors, int) and rings >= 1 and sectors >= 1):
+        raise ValueError(f"strata must be two positive ints (rings, sectors), got {strata!r}")
+    axis, omc, inside = _cone(to_center, radius)
+    omc = jnp.where(inside, 2.0, omc)
+    dtype = axis.dtype
+    one_m_ct = omc[..., None] * ((jnp.arange(rings, dtype=dtype) + 0.5) / rings)  # (..., R)
+    ct = jnp.repeat(1.0 - one_m_ct, sectors, axis=-1)  # (..., K), ring-major
+    st = jnp.repeat(safe_sqrt(one_m_ct * (2.0 - one_m_ct)), sectors, axis=-1)
+    phi = 2.0 * jnp.pi * (jnp.arange(sectors, dtype=dtype) + 0.5) / sectors
+    cp, sp = jnp.tile(jnp.cos(phi), rings), jnp.tile(jnp.sin(phi), rings)  # (K,)
+    t1 = _tangent(axis)
+    t2 = jnp.cross(axis, t1)
+    a, b = st * cp, st * sp
+    return tuple(a * t1[..., c, None] + b * t2[..., c, None] + ct * axis[..., c, None] for c in range(3))
+
+
 def stratified_sphere_cone(
     to_center: Float[ArrayLike, "... 3"],
     radius: Float[ArrayLike, "..."] | float,
@@ -94,23 +124,7 @@ def stratified_sphere_cone(
     (``1 − cos θ = (i + ½)/rings · (1 − cos α)``, ``φ = 2π(j + ½)/sectors``), so an average over
     them is a midpoint rule for the mean over the cap. Inside the sphere (``|to_center| ≤ r``) the
     cap is the whole sphere (``1 − cos α = 2``). Batches over the leading axes of ``to_center``
-    and ``radius``; no NaN for a zero ``to_center`` (any axis then).
+    and ``radius``; no NaN for a zero ``to_center`` (any axis then). Unit vectors by construction
+    (an orthonormal frame), to rounding.
     """
-    rings, sectors = strata
-    if not (isinstance(rings, int) and isinstance(sectors, int) and rings >= 1 and sectors >= 1):
-        raise ValueError(f"strata must be two positive ints (rings, sectors), got {strata!r}")
-    axis, omc, inside = _cone(to_center, radius)
-    omc = jnp.where(inside, 2.0, omc)
-    dtype = axis.dtype
-    one_m_ct = omc[..., None] * ((jnp.arange(rings, dtype=dtype) + 0.5) / rings)  # (..., R)
-    ct = 1.0 - one_m_ct
-    st = safe_sqrt(one_m_ct * (2.0 - one_m_ct))
-    phi = 2.0 * jnp.pi * (jnp.arange(sectors, dtype=dtype) + 0.5) / sectors  # (S,)
-    t1 = _tangent(axis)
-    t2 = jnp.cross(axis, t1)
-    d = (
-        (st[..., :, None, None] * jnp.cos(phi)[:, None]) * t1[..., None, None, :]
-        + (st[..., :, None, None] * jnp.sin(phi)[:, None]) * t2[..., None, None, :]
-        + ct[..., :, None, None] * axis[..., None, None, :]
-    )
-    return safe_normalize(d.reshape(*d.shape[:-3], rings * sectors, 3))
+    return jnp.stack(stratified_cone_components(to_center, radius, strata), axis=-1)

@@ -39,6 +39,7 @@ from ._frames import bsv_grid_angles as bsv_grid_angles
 from ._images import OcclusionImages as OcclusionImages
 from ._images import bsv_with_occlusion_images as bsv_with_occlusion_images
 from ._images import image_fan_visibility as image_fan_visibility
+from ._images import image_fan_visibility_components as image_fan_visibility_components
 from ._images import image_ray_visibility as image_ray_visibility
 from ._images import occlusion_images as occlusion_images
 from ._own import vertex_visibility_sh as vertex_visibility_sh

@@ -52,6 +52,7 @@ __all__ = [
     "bsv_with_occlusion_images",
     "image_ray_visibility",
     "image_fan_visibility",
+    "image_fan_visibility_components",
 ]
 
 
@@ -189,9 +190,21 @@ def image_fan_visibility(
     airplane's light over a 128² plane) at a fifth of its time: per (ray, grid point) a 3 × 3
     frame product, two divisions and one gather, with no trigonometry or table gathers per ray.
     """
-    origins, dirs, axis = jnp.asarray(origins), jnp.asarray(dirs), jnp.asarray(axis)
-    dtype = jnp.result_type(origins, dirs, images.center)
-    origins, dirs, axis = origins.astype(dtype), dirs.astype(dtype), axis.astype(dtype)
+    d = jnp.asarray(dirs)
+    return image_fan_visibility_components(images, origins, (d[..., 0], d[..., 1], d[..., 2]), axis)
+
+
+@jax.jit
+def image_fan_visibility_components(
+    images: OcclusionImages,
+    origins: Float[ArrayLike, "N 3"],
+    dirs: tuple[Float[ArrayLike, "N K"], Float[ArrayLike, "N K"], Float[ArrayLike, "N K"]],
+    axis: Float[ArrayLike, "N 3"],
+) -> Float[Array, "N K"]:
+    """:func:`image_fan_visibility` with ``dirs`` as three (N, K) arrays of x, y, z components."""
+    origins, axis = jnp.asarray(origins), jnp.asarray(axis)
+    dtype = jnp.result_type(origins, dirs[0], images.center)
+    origins, axis = origins.astype(dtype), axis.astype(dtype)
     t_n, p_n, ny, nx = images.occluded.shape
     flat = images.occluded.reshape(-1)
     r = images.radius.astype(dtype)
@@ -215,7 +228,7 @@ def image_fan_visibility(
     i0, j0 = i0.astype(jnp.int32), j0.astype(jnp.int32)
     th, ph = bsv_grid_angles(t_n, p_n, dtype)
     sin_t, cos_t, sin_p, cos_p = jnp.sin(th), jnp.cos(th), jnp.sin(ph), jnp.cos(ph)
-    dx, dy, dz = dirs[..., 0], dirs[..., 1], dirs[..., 2]
+    dx, dy, dz = (x.astype(dtype) for x in dirs)
     b = rx[:, None] * dx + ry[:, None] * dy + rz[:, None] * dz
     meets = (b * b - (rr[:, None] - r * r) > 0) & (b < 0)
     vis = jnp.zeros(b.shape, dtype)
