@@ -1,0 +1,72 @@
+"""Frame times of the shipped sphere-light configs: the default, ``light_visibility = "images"``
+and the paper's method, in one run.
+
+    python benchmarks/bench_light_images.py [--frames 20] [--json benchmarks/results/light_images.json]
+
+For each of ``airplane_bend`` (bending every frame), ``egg_breathing`` (breathing every frame) and
+``spot_sunset`` (static) at their shipped sizes (128² plane), one :class:`jshadow.Renderer` per
+method renders frame 0 (compile: ``first_s``), then ``--frames`` frames; the medians of their
+per-stage timings (``bsv_ms``, ``light_images_ms``, ``shading_ms``, ``total_ms``) are reported. A
+machine probe (``bench_render.machine_probe``) before and after places the run among this VM's
+phases. The error each setting buys is measured by ``experiments/light_field.py``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import pathlib
+import sys
+import time
+
+import numpy as np
+
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
+import bench_render  # noqa: E402
+
+from jshadow import Renderer  # noqa: E402
+from jshadow.config import build_scene, load_config  # noqa: E402
+from jshadow.entities import Method  # noqa: E402
+
+CONFIGS = ["configs/airplane_bend.toml", "configs/egg_breathing.toml", "configs/spot_sunset.toml"]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--frames", type=int, default=20)
+    ap.add_argument("--json", default=None)
+    args = ap.parse_args()
+    out = {
+        "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+        "probe_start": bench_render.machine_probe(),
+    }
+    for cfg in CONFIGS:
+        base = build_scene(load_config(cfg))
+        methods = {
+            "default": base.method,
+            "images": dataclasses.replace(base.method, light_visibility="images"),
+            "paper": Method.paper(sh_bands=base.method.sh_bands),
+        }
+        for label, m in methods.items():
+            scene = dataclasses.replace(base, method=m)
+            r = Renderer(scene)
+            t0 = time.perf_counter()
+            r.frame(0)
+            first = time.perf_counter() - t0
+            ts = [r.frame(f % scene.n_frames)[1] for f in range(1, args.frames + 1)]
+            med = {k: float(np.median([t[k] for t in ts])) for k in ts[0]}
+            out[f"{pathlib.Path(cfg).stem} {label}"] = dict(first_s=first, **med)
+            print(
+                f"{cfg:28s} {label:8s} first {first:5.1f} s",
+                {k: round(v, 2) for k, v in med.items()},
+                flush=True,
+            )
+    out["probe_end"] = bench_render.machine_probe()
+    print("machine probe", out["probe_start"], out["probe_end"])
+    if args.json:
+        pathlib.Path(args.json).write_text(json.dumps(out, indent=1))
+
+
+if __name__ == "__main__":
+    main()
