@@ -90,7 +90,7 @@ class Method:
     of the light over ``light_cap`` = (rings, sectors) directions of its cap, each ray looked up in
     the BSV's occlusion images (:func:`jshadow.visibility.image_ray_visibility`; sphere occluders
     by an exact ray test), times the light's exact unoccluded irradiance. Sharp where n-band SH
-    blur: 0.5–1.0 % relative RMSE on the mesh scenes with sphere lights against 2.7–9 % (BENCHMARKS.md
+    blur: 0.5–1.0 % relative RMSE on the mesh scenes with sphere lights against 2.5–9 % (BENCHMARKS.md
     "Sharp sphere-light shadows"), at the cost of the images (a second edge-scan per BSV) and the
     lookups. It needs the edge-scan (shell > 1, closed meshes) and has no derivative with respect
     to geometry (binary lookups): differentiating it with respect to vertices, light or occluder

@@ -7,7 +7,8 @@ and a sphere light through the images match the closed-form lens of the analytic
 1.5 % relative RMSE, where the n-band path is off by more than 3 %; ``render`` and the Renderer's
 one-call, split and chunked paths agree, images are made once for a rigid shape and every frame
 for a deforming one; derivatives with respect to geometry raise, with respect to radiance work,
-and the lookup's own gradient is finite at its singular points; config keys are read and checked;
+and the lookup's own gradient is finite at its singular points; jit with a traced time equals eager;
+config keys are read and checked;
 ``jshadow render`` reports the images' time and count, ``jshadow fit`` of a light position says in
 one line that the option has no derivative; sphere occluders alone keep the exact lens.
 """
@@ -28,7 +29,7 @@ from jshadow.entities import Environment, Method, Scene, SphereLight, SphereOccl
 from jshadow.geometry import Twist
 from jshadow.runner import Renderer
 from jshadow.sampling import stratified_sphere_cone
-from jshadow.scene import render
+from jshadow.scene import render, render_at
 from jshadow.visibility import image_fan_visibility, image_ray_visibility, occlusion_images, ray_fan_any_hit
 
 IMAGES = dataclasses.replace(SMALL, light_visibility="images")
@@ -234,3 +235,13 @@ def test_sphere_occluders_alone_keep_the_exact_lens():
     scene = _light_scene(SphereOccluder(f32(0.0, 1.1, 0.0), jnp.float32(0.6)), IMAGES, n=6)
     lens = render(dataclasses.replace(scene, method=SMALL)).irradiance
     np.testing.assert_array_equal(np.asarray(render(scene).irradiance), np.asarray(lens))
+
+
+def test_jit_with_a_traced_time_matches_eager():
+    """Under ``jax.jit`` with the animation time traced, the images of a deforming mesh are made
+    inside the trace (the edge-scan's traced path) and give the eager frame."""
+    occ = icosphere_occluder((0, 1.1, 0), 0.6, Twist(jnp.float32(0.0), jnp.float32(1.0), 1))
+    scene = _light_scene(occ, IMAGES, n=5, n_frames=3)
+    jitted = np.asarray(jax.jit(lambda t: render_at(scene, t).irradiance)(jnp.float32(0.5)))
+    eager = np.asarray(render(scene, 1).irradiance)
+    np.testing.assert_allclose(jitted, eager, atol=1e-5 * float(np.abs(eager).max()))
