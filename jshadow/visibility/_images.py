@@ -117,61 +117,12 @@ def image_ray_visibility(
     bilinear blend of the four grid images around its entry point, each read at the focal
     direction (module docstring). Batches over the broadcast leading axes of origins and dirs.
     """
-    o = jnp.asarray(origins)
-    d = jnp.asarray(dirs)
-    dtype = jnp.result_type(o, d, images.center)
-    o, d = o.astype(dtype), d.astype(dtype)
-    t_n, p_n, ny, nx = images.occluded.shape
-    flat = images.occluded.reshape(-1)
-    r = images.radius.astype(dtype)
-    big_r = images.shell * r
-    tan_a = math.tan(math.asin(1.0 / images.shell))
-    # components as separate arrays: XLA:CPU handles (..., 3) minor axes poorly (3x slower here)
-    rel = o - images.center.astype(dtype)
-    rx, ry, rz = rel[..., 0], rel[..., 1], rel[..., 2]
-    dx, dy, dz = d[..., 0], d[..., 1], d[..., 2]
-    b = rx * dx + ry * dy + rz * dz
-    rr = rx * rx + ry * ry + rz * rz
-    meets = (b * b - (rr - r * r) > 0) & (b < 0)  # the ray reaches the bounding sphere ahead
-    t_in = -b - safe_sqrt(b * b - (rr - big_r * big_r))
-    ex, ey, ez = rx + t_in * dx, ry + t_in * dy, rz + t_in * dz  # entry point on the shell (rel. c)
-    qx, qy, qz = rx - b * dx, ry - b * dy, rz - b * dz  # the focal point: closest approach to c
-    u_z = jnp.clip(safe_div(ez, big_r), -1.0, 1.0)
-    theta = safe_atan2(safe_sqrt(1.0 - u_z * u_z), u_z)
-    phi = safe_atan2(ey, ex)  # (−π, π]; the grid index is taken modulo P
-    gi = theta * (t_n / math.pi) - 0.5
-    gj = phi * (p_n / (2.0 * math.pi))
-    i0, j0 = jnp.floor(gi), jnp.floor(gj)
-    fi, fj = gi - i0, gj - j0
-    i0, j0 = i0.astype(jnp.int32), j0.astype(jnp.int32)
-    th, ph = bsv_grid_angles(t_n, p_n, dtype)
-    sin_t, cos_t, sin_p, cos_p = jnp.sin(th), jnp.cos(th), jnp.sin(ph), jnp.cos(ph)
-    vis = jnp.zeros(b.shape, dtype)
-    for di in (0, 1):
-        ii = jnp.clip(i0 + di, 0, t_n - 1)  # beyond the first/last ring: that ring
-        wi = fi if di else 1.0 - fi
-        st, ct = sin_t[ii], cos_t[ii]
-        for dj in (0, 1):
-            jj = jnp.mod(j0 + dj, p_n)
-            wj = fj if dj else 1.0 - fj
-            sp, cp = sin_p[jj], cos_p[jj]
-            # the grid point's frame (bsv_frames): x = e_θ, y = −e_φ, z = −u; look = q − R·u
-            ux, uy, uz = st * cp, st * sp, ct
-            lx, ly, lz = qx - big_r * ux, qy - big_r * uy, qz - big_r * uz
-            x_loc = (lx * cp + ly * sp) * ct - lz * st
-            y_loc = lx * sp - ly * cp
-            z_loc = -(lx * ux + ly * uy + lz * uz)
-            front = z_loc > 0
-            x = safe_div(x_loc, z_loc)
-            y = safe_div(y_loc, z_loc)
-            px = jnp.floor((x + tan_a) * (nx / (2.0 * tan_a)))
-            py = jnp.floor((y + tan_a) * (ny / (2.0 * tan_a)))
-            inside = front & (px >= 0) & (px < nx) & (py >= 0) & (py < ny)
-            pxi = jnp.clip(px, 0, nx - 1).astype(jnp.int32)
-            pyi = jnp.clip(py, 0, ny - 1).astype(jnp.int32)
-            hit = flat[((ii * p_n + jj) * ny + pyi) * nx + pxi] & inside
-            vis = vis + (wi * wj) * (1.0 - hit.astype(dtype))
-    return jnp.where(meets, vis, 1.0)
+    o, d = jnp.broadcast_arrays(jnp.asarray(origins), jnp.asarray(dirs))
+    shape = o.shape[:-1]
+    o, d = o.reshape(-1, 3), d.reshape(-1, 3)
+    # each ray its own fan of one, about itself: its own four grid points
+    comps = tuple(d[:, c : c + 1] for c in range(3))
+    return image_fan_visibility_components(images, o, comps, d).reshape(shape)
 
 
 @jax.jit
@@ -186,9 +137,10 @@ def image_fan_visibility(
     direction to its centre; for an axis that misses the shell, around the direction of its
     closest approach). Each ray is still looked up toward its own focal point and tested against
     the bounding sphere, so only the grid points and their bilinear weights are shared. For the
-    small caps of lights this is the per-ray lookup up to 0.4 % of the rays' mean visibility (the
-    airplane's light over a 128² plane) at a fifth of its time: per (ray, grid point) a 3 × 3
-    frame product, two divisions and one gather, with no trigonometry or table gathers per ray.
+    small caps of lights the difference from :func:`image_ray_visibility` (a fan of one ray each)
+    is small (``tests/test_light_images.py`` bounds it on a convex mesh), and the work per
+    (ray, grid point) is a 3 × 3 frame product, two divisions and one gather: no trigonometry or
+    table gathers per ray. The renderer uses this (``jshadow.scene.light_visible_fractions``).
     """
     d = jnp.asarray(dirs)
     return image_fan_visibility_components(images, origins, (d[..., 0], d[..., 1], d[..., 2]), axis)
