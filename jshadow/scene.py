@@ -518,10 +518,10 @@ def light_visible_fractions(
             axis = safe_normalize(lc - pts)
             d_l = safe_norm(pts - lc)
             vis = jnp.ones(dx.shape, pts.dtype)
+            dirs = jnp.stack([dx, dy, dz], -1) if len(spheres) else None  # for the sphere ray tests
             for img, sphere in blockers:
                 if img is None:
                     c, r = sphere
-                    dirs = jnp.stack([dx, dy, dz], -1)
                     v = 1.0 - ray_sphere_any_hit(pts[:, None, :], dirs, c, r).astype(pts.dtype)
                 else:
                     c = img.center

@@ -21,9 +21,7 @@ is not the derivative of the shadow (:mod:`jshadow.scene` refuses to differentia
 Accuracy (``experiments/light_field.py``, BENCHMARKS.md "Sharp sphere-light shadows"): the
 visible fraction of a sphere light from 4 × 8 cap directions looked up this way brings the mesh
 scenes with sphere lights to about 1 % relative RMSE of irradiance or less, where the n-band
-product gives 2.5–9 % (and exact n-band visibility is no better than 2.5–8.8 %). A lookup of the
-direction ω itself at the four grid points, instead of the focal direction, was several times
-less accurate in a first trial (the parallax of grid points 0.4 r apart).
+product gives 2.5–9 % (and exact n-band visibility is no better than 2.5–8.8 %).
 
 Limitations: receivers outside the shell (R = shell · r) only — a ray from inside it (an
 occluder's own vertex, a receiver in contact) is looked up as if it entered at its own position,
