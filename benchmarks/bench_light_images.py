@@ -1,10 +1,12 @@
-"""Frame times of the shipped sphere-light configs: the default, ``light_visibility = "images"``
-and the paper's method, in one run.
+"""Frame times of the shipped configs with a sphere light or a lat-long map: the default,
+``light_visibility = "images"`` (with ``environment_lights`` for the maps) and the paper's method,
+in one run.
 
     python benchmarks/bench_light_images.py [--frames 20] [--json benchmarks/results/light_images.json]
 
-For each of ``airplane_bend`` (bending every frame), ``egg_breathing`` (breathing every frame) and
-``spot_sunset`` (static) at their shipped sizes (128² plane), one :class:`jshadow.Renderer` per
+For each of ``airplane_bend`` (bending every frame), ``egg_breathing`` (breathing every frame),
+``spot_sunset`` and ``bunny_studio`` (static) and ``bunny_animated`` (twisting every frame, 160²
+plane and the bunny's own vertices) at their shipped sizes, one :class:`jshadow.Renderer` per
 method renders frame 0 (compile: ``first_s``), then ``--frames`` frames; the medians of their
 per-stage timings (``bsv_ms``, ``light_images_ms``, ``shading_ms``, ``total_ms``) are reported. A
 machine probe (``bench_render.machine_probe``) before and after places the run among this VM's
@@ -29,7 +31,31 @@ from jshadow import Renderer  # noqa: E402
 from jshadow.config import build_scene, load_config  # noqa: E402
 from jshadow.entities import Method  # noqa: E402
 
-CONFIGS = ["configs/airplane_bend.toml", "configs/egg_breathing.toml", "configs/spot_sunset.toml"]
+CONFIGS = [
+    "configs/airplane_bend.toml",
+    "configs/egg_breathing.toml",
+    "configs/spot_sunset.toml",
+    "configs/bunny_studio.toml",
+    "configs/bunny_animated.toml",
+]
+
+
+def _methods(base) -> dict:
+    """The settings timed on a config: the default, the images for its sphere lights (if any), the
+    images with environment lights (lat-long maps only; also at the finer grid and images that
+    ``experiments/light_field.py`` measures), and the paper's method."""
+    m = base.method
+    out = {"default": m}
+    if base.lights:
+        out["images"] = dataclasses.replace(m, light_visibility="images")
+    if base.environment is not None and base.environment.kind == "hdr":
+        env = dataclasses.replace(m, light_visibility="images", environment_lights=32)
+        out["images + 32 env lights"] = env
+        out["images + 64 env lights, 24x40, 64²"] = dataclasses.replace(
+            env, environment_lights=64, bsv_grid=(24, 40), directions=(64, 64), light_cap=(8, 16)
+        )
+    out["paper"] = Method.paper(sh_bands=m.sh_bands)
+    return out
 
 
 def main() -> None:
@@ -43,12 +69,7 @@ def main() -> None:
     }
     for cfg in CONFIGS:
         base = build_scene(load_config(cfg))
-        methods = {
-            "default": base.method,
-            "images": dataclasses.replace(base.method, light_visibility="images"),
-            "paper": Method.paper(sh_bands=base.method.sh_bands),
-        }
-        for label, m in methods.items():
+        for label, m in _methods(base).items():
             scene = dataclasses.replace(base, method=m)
             r = Renderer(scene)
             t0 = time.perf_counter()
@@ -58,7 +79,7 @@ def main() -> None:
             med = {k: float(np.median([t[k] for t in ts])) for k in ts[0]}
             out[f"{pathlib.Path(cfg).stem} {label}"] = dict(first_s=first, **med)
             print(
-                f"{cfg:28s} {label:8s} first {first:5.1f} s",
+                f"{cfg:28s} {label:36s} first {first:5.1f} s",
                 {k: round(v, 2) for k, v in med.items()},
                 flush=True,
             )

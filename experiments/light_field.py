@@ -7,11 +7,16 @@ visible fraction of each light over ``light_cap`` stratified directions of its c
 up in the BSV's binary occlusion images (:func:`jshadow.visibility.image_ray_visibility`: the ray
 enters the shell at p, and beyond p it is the ray (p, ω) that the shell's images sample; bilinear
 over the four grid points around p, each read toward the ray's point nearest the occluder's
-centre), times the light's exact unoccluded irradiance. The environment keeps the default's path.
+centre), times the light's exact unoccluded irradiance. The environment keeps the default's path,
+unless ``environment_lights`` > 0 splits a lat-long map's radiance above ``environment_threshold``
+× its mean off as that many distant lights (median cut, :mod:`jshadow.envlights`) shadowed through
+the same images — for the studio map's small lamps, where the n-band floor is 19 %.
 
-For every case of ``experiments/models.py`` with a sphere light (references cached there), this
-script renders the default and ``light_visibility = "images"`` at several sizes — the BSV grid and
-image resolution (``bsv_grid``, ``directions``) and the cap directions (``light_cap``) — with
+For every case of ``experiments/models.py`` with a sphere light or a lat-long map (references
+cached there), and an untuned one (``airplane_studio_twist``: the twisted airplane under the
+studio map turned by 2 rad), this script renders the default and ``light_visibility = "images"``
+at several sizes — the BSV grid and image resolution (``bsv_grid``, ``directions``), the cap
+directions (``light_cap``), the number of environment lights and their threshold — with
 :class:`jshadow.Renderer` (fresh renderers, BSV and images sampled every frame), and reports the
 error against the reference with the time per frame of the same run (``models.timed``: median warm
 frame, 32² plane).
@@ -32,6 +37,7 @@ import pathlib
 import sys
 import time
 
+import jax.numpy as jnp
 import matplotlib
 import numpy as np
 
@@ -42,7 +48,21 @@ sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
 import models  # noqa: E402
 from _common import git_state  # noqa: E402
 
-CASES = ["spot_sky_light", "airplane_bend_last", "egg_breathing", "spot_sunset", "three_occluders", "sphere"]
+from jshadow.config import rotate_latlong_y  # noqa: E402
+from jshadow.entities import Environment  # noqa: E402
+from jshadow.geometry import make_deformation  # noqa: E402
+from jshadow.lights import read_latlong  # noqa: E402
+
+CASES = [
+    "spot_sky_light",
+    "airplane_bend_last",
+    "egg_breathing",
+    "spot_sunset",
+    "three_occluders",
+    "sphere",
+    "bunny_studio",
+    "airplane_studio_twist",
+]
 # label -> [method] keys over the default
 SETTINGS = {
     "default (n-band)": {},
@@ -52,8 +72,69 @@ SETTINGS = {
     "images, 24x40, 64², cap 8x16": dict(
         light_visibility="images", light_cap=(8, 16), bsv_grid=(24, 40), directions=(64, 64)
     ),
+    # the map's bright part as distant lights through the same images (lat-long maps only)
+    "images + 8 env lights": dict(light_visibility="images", environment_lights=8),
+    "images + 32 env lights": dict(light_visibility="images", environment_lights=32),
+    "images + 32 env lights, threshold 1": dict(
+        light_visibility="images", environment_lights=32, environment_threshold=1.0
+    ),
+    "images + 32 env lights, threshold 16": dict(
+        light_visibility="images", environment_lights=32, environment_threshold=16.0
+    ),
+    # ... and the own vertices' bright part by exact rays (self_visibility = "rays"; self_shadow only)
+    "images + 32 env lights, self rays": dict(
+        light_visibility="images", environment_lights=32, self_visibility="rays"
+    ),
+    "images + 64 env lights, 24x40, 64², cap 8x16, self rays": dict(
+        light_visibility="images",
+        environment_lights=64,
+        light_cap=(8, 16),
+        bsv_grid=(24, 40),
+        directions=(64, 64),
+        self_visibility="rays",
+    ),
+    "images + 64 env lights, 24x40, 64², cap 8x16": dict(
+        light_visibility="images",
+        environment_lights=64,
+        light_cap=(8, 16),
+        bsv_grid=(24, 40),
+        directions=(64, 64),
+    ),
 }
-MAPPED = "images (12x20, 32², cap 4x8)"
+ROWS = {  # the error maps' rows: (label, setting); a row is left blank where its setting does not apply
+    "default (n-band)": "default (n-band)",
+    '"images"': "images (12x20, 32², cap 4x8)",
+    '"images" + 32 env lights': "images + 32 env lights",
+}
+
+
+def _airplane_studio_twist(method: dict, res: int):
+    """Untuned for the environment lights: another mesh and deformation under the studio map turned
+    by 2 rad about +y (so its lamps fall elsewhere), no sphere light."""
+    path = models.ASSETS / "envmaps" / "studio_small_03_512x256.hdr"
+    image = rotate_latlong_y(jnp.asarray(read_latlong(path), jnp.float32), 2.0)
+    env = Environment(radiance=jnp.ones(3, jnp.float32), image=image, kind="hdr")
+    twist = make_deformation("twist", 0.8, axis="x")
+    return models._scene(method, [models._mesh("airplane.obj", (0, 1.1, 0), 0.9, twist)], env=env, res=res)
+
+
+def _cases():
+    cases = dict(models._cases())
+    cases["airplane_studio_twist"] = (_airplane_studio_twist, 0, "analytic", False)
+    return cases
+
+
+def _applies(keys: dict, scene) -> bool:
+    """Whether a setting changes anything on a scene: the sphere-light options need sphere lights,
+    the environment lights a lat-long map, own-vertex rays self-shadowing (the default always
+    applies)."""
+    if not keys:
+        return True
+    if keys.get("self_visibility") == "rays" and not scene.self_shadow:
+        return False
+    if keys.get("environment_lights"):
+        return scene.environment is not None and scene.environment.kind == "hdr"
+    return bool(scene.lights)
 
 
 def main() -> None:
@@ -66,13 +147,15 @@ def main() -> None:
     t_start = time.perf_counter()
     out = models.RESULTS / "light_field.json"
     for name in args.cases:
-        build, frame, sphere_path, tuned = models._cases()[name]
+        build, frame, sphere_path, tuned = _cases()[name]
         base = build(models.VARIANTS["paper"], 32)
         ref = models.reference(name, base, frame, 1e-3, 32768)
         n_plane = int(np.prod(base.receivers.grid_shape))
         rows = {}
         got = {}
         for label, keys in SETTINGS.items():
+            if not _applies(keys, base):
+                continue
             method = dict(models.VARIANTS[models.DEFAULT_VARIANT], **keys)
             approx, first, warm = models.timed(build(method, 32), frame, sphere_path, args.runs)
             err = models.errors(approx, ref, n_plane)
@@ -90,21 +173,30 @@ def main() -> None:
                 flush=True,
             )
         results["cases"][name] = {"tuned": tuned, "ref_spp": int(ref["spp"]), "settings": rows}
-        maps[name] = (ref["mean"][:n_plane], got["default (n-band)"][:n_plane], got[MAPPED][:n_plane])
+        maps[name] = (
+            ref["mean"][:n_plane],
+            {row: got[lb][:n_plane] for row, lb in ROWS.items() if lb in got},
+        )
         out.write_text(json.dumps(results, indent=1))
     results["seconds"] = time.perf_counter() - t_start
-    fig, axes = plt.subplots(2, len(maps), figsize=(2.4 * len(maps), 4.8), dpi=100, squeeze=False)
-    for j, (name, (ref, dflt, lf)) in enumerate(maps.items()):
+    fig, axes = plt.subplots(
+        len(ROWS), len(maps), figsize=(2.4 * len(maps), 2.4 * len(ROWS)), dpi=100, squeeze=False
+    )
+    for j, (name, (ref, rows)) in enumerate(maps.items()):
         side = int(round(math.sqrt(ref.shape[0])))
-        for i, (label, approx) in enumerate((("default (n-band)", dflt), ('"images"', lf))):
-            err = ((approx - ref).mean(1) / ref.mean()).reshape(side, side)
-            im = axes[i, j].imshow(100 * err, cmap="RdBu_r", vmin=-10, vmax=10, origin="lower")
-            axes[i, j].set_xticks([])
-            axes[i, j].set_yticks([])
+        for i, label in enumerate(ROWS):
+            ax = axes[i, j]
+            ax.set_xticks([])
+            ax.set_yticks([])
             if i == 0:
-                axes[i, j].set_title(name, fontsize=7)
+                ax.set_title(name, fontsize=7)
             if j == 0:
-                axes[i, j].set_ylabel(label, fontsize=8)
+                ax.set_ylabel(label, fontsize=8)
+            if label not in rows:
+                ax.set_frame_on(False)
+                continue
+            err = ((rows[label] - ref).mean(1) / ref.mean()).reshape(side, side)
+            im = ax.imshow(100 * err, cmap="RdBu_r", vmin=-10, vmax=10, origin="lower")
     fig.colorbar(im, ax=axes, shrink=0.8, label="(render − reference) / mean [%]")
     path = models.FIGURES / "light_field_maps.png"
     fig.savefig(path)

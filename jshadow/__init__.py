@@ -5,7 +5,7 @@ Public entry points (DESIGN.md §4): :func:`load_config`, :func:`build_scene`, :
 and sharded receivers) and :func:`render_frames`. Sub-packages: :mod:`jshadow.sh` (spherical
 harmonics), :mod:`jshadow.geometry` (meshes, deformations), :mod:`jshadow.visibility` (ray casting,
 base sphere visibility), :mod:`jshadow.scaling` (f_k, M_k), :mod:`jshadow.lights`,
-:mod:`jshadow.sampling`.
+:mod:`jshadow.sampling`, :mod:`jshadow.envlights` (a map's bright part as distant lights).
 """
 
 from . import entities as entities

@@ -44,13 +44,15 @@ from .entities import MeshOccluder, Receivers, Scene, frame_time, receivers_at_t
 from .scene import (
     RenderResult,
     combine,
-    light_visible_fractions,
+    image_fractions,
     occluder_bsv,
     occluder_bsv_and_images,
     occluder_images,
+    occluder_own_light_visibility,
     occluder_own_visibility,
     occluder_visibilities,
     scene_lighting,
+    self_light_rows,
     self_visibility_owners,
     self_visibility_rows,
     shared_normal_count,
@@ -90,12 +92,17 @@ def _fields(scene, bsvs, points, own=None):
     return (jnp.stack(vis), jnp.stack(dist)) if vis else (vis, dist)
 
 
-def _combine_piece(scene, points, normals, vis, dist, lighting, analytic_spheres, shared_normal, images=None):
+def _combine_piece(
+    scene, points, normals, vis, dist, lighting, analytic_spheres, shared_normal, images=None, own=None
+):
     """Combination of one piece (``images``: the occluders' occlusion images with
-    ``light_visibility = "images"``, else None; see :func:`jshadow.scene.light_visible_fractions`)."""
+    ``light_visibility = "images"``, else None; ``own``: the piece's rows of the ray-cast
+    own-vertex visibility; see :func:`jshadow.scene.image_fractions`)."""
     vis, dist = list(vis), list(dist)  # (m, ...) arrays or empty lists -> lists of m arrays
-    fractions = None if images is None else light_visible_fractions(scene, images, points, normals)
-    e = combine(scene, points, normals, vis, dist, lighting, analytic_spheres, shared_normal, fractions)
+    fractions, env_fraction = image_fractions(scene, images, lighting, points, normals, own)
+    e = combine(
+        scene, points, normals, vis, dist, lighting, analytic_spheres, shared_normal, fractions, env_fraction
+    )
     return e, e * (scene.receivers.albedo / math.pi)
 
 
@@ -110,7 +117,7 @@ def _shade_piece(
     ``images``: see :func:`_combine_piece`)."""
     vis, dist = occluder_visibilities(scene, bsvs, points, own)
     return _combine_piece(
-        scene, points, normals, vis, dist, lighting, analytic_spheres, shared_normal, images
+        scene, points, normals, vis, dist, lighting, analytic_spheres, shared_normal, images, own
     )
 
 
@@ -256,28 +263,38 @@ class Renderer:
         return tuple(out)
 
     def _own(self, t):
-        """The frame's ray-cast own-vertex visibility ``(rows, owners)`` (None unless the scene uses
-        it): cast once for an occluder whose shape does not change, every frame for one that does."""
+        """The frame's ray-cast own-vertex visibility ``(rows, owners)`` — and, with environment
+        lights, the own vertices' visibility toward them (:func:`jshadow.scene.own_rows_at_time`)
+        — or None unless the scene uses it: cast once for an occluder whose shape does not change,
+        every frame for one that does."""
         if self._owners is None:
             return None
         if self._static_rows is not None:
-            return self._static_rows, self._owners
-        own = []
+            return self._static_rows
+        lights = self._lighting.env_lights
+        own, own_lights = [], []
         for i, occ in enumerate(self.scene.occluders):
             if not isinstance(occ, MeshOccluder):
                 continue
             if shape_is_static(occ) and i in self._static_own:
-                own.append(self._static_own[i])
-                continue
-            v = occluder_own_visibility(occ, 0.0 if shape_is_static(occ) else t, self.scene, cache=False)
-            self.self_visibility_computations += 1
-            if shape_is_static(occ):
-                self._static_own[i] = v
+                v, vl = self._static_own[i]
+            else:
+                at = 0.0 if shape_is_static(occ) else t
+                v = occluder_own_visibility(occ, at, self.scene, cache=False)
+                vl = None
+                if lights is not None:
+                    vl = occluder_own_light_visibility(occ, at, self.scene, lights.directions, cache=False)
+                self.self_visibility_computations += 1
+                if shape_is_static(occ):
+                    self._static_own[i] = (v, vl)
             own.append(v)
-        rows = self_visibility_rows(self.scene, own)
+            own_lights.append(vl)
+        out = (self_visibility_rows(self.scene, own), self._owners)
+        if lights is not None:
+            out = (*out, self_light_rows(self.scene, own_lights, lights.directions.shape[0]))
         if all(shape_is_static(o) for o in self.scene.occluders if isinstance(o, MeshOccluder)):
-            self._static_rows = rows
-        return rows, self._owners
+            self._static_rows = out
+        return out
 
     def _images(self, t):
         """The frame's occlusion images per occluder (None unless the scene uses them): once for a
@@ -330,7 +347,8 @@ class Renderer:
         combination; ``total_ms``: all stages. With ``method.self_visibility = "rays"`` also
         ``self_visibility_ms``: casting the occluders' own-vertex visibility (about 0 after the
         first frame for shapes that do not change). With ``method.light_visibility = "images"``
-        (and sphere lights) also ``light_images_ms``: the occluders' occlusion images (likewise).
+        (and sphere lights or ``environment_lights``) also ``light_images_ms``: the occluders'
+        occlusion images (likewise).
         With ``split_stages`` also ``field_ms`` (including placing the receivers) and
         ``combine_ms``, whose sum is ``shading_ms``. With several pieces the shading times are
         summed over the pieces.
@@ -388,7 +406,7 @@ class Renderer:
                 vis, dist = jax.block_until_ready(_fields(self._light, bsvs, p, o))
                 tb = time.perf_counter()
                 e, rad = jax.block_until_ready(
-                    _combine(self._light, p, q, vis, dist, self._lighting, analytic, shared, images)
+                    _combine(self._light, p, q, vis, dist, self._lighting, analytic, shared, images, o)
                 )
             else:
                 e, rad = jax.block_until_ready(

@@ -19,6 +19,7 @@ LAYER = {
     "sampling": 3,
     "scaling": 3,
     "lights": 4,
+    "envlights": 5,
     "field": 5,
     "scene": 6,
     "reference": 6,
@@ -31,7 +32,7 @@ LAYER = {
     "__init__": 10,
 }
 REFERENCE_SIDE = {"reference", "sampling"}
-SHADOW_FIELD_CODE = {"scaling", "lights", "field", "scene", "runner", "optim"}
+SHADOW_FIELD_CODE = {"scaling", "lights", "envlights", "field", "scene", "runner", "optim"}
 
 
 def top_module(path: pathlib.Path) -> str:

@@ -193,6 +193,8 @@ _METHOD_KEYS = (
     "self_visibility_grid",
     "light_visibility",
     "light_cap",
+    "environment_lights",
+    "environment_threshold",
 )
 
 
@@ -223,6 +225,8 @@ def _method(t: _Table) -> MethodConfig:
         self_visibility_grid=t.integers("self_visibility_grid", 2, [12, 48], lo=2),
         light_visibility=t.string("light_visibility", "sh", choices=LIGHT_VISIBILITIES),
         light_cap=t.integers("light_cap", 2, [4, 8], lo=1),
+        environment_lights=t.integer("environment_lights", 0, lo=0),
+        environment_threshold=t.number("environment_threshold", 4.0, check="positive"),
     )
     try:
         return MethodConfig(**cfg)

@@ -94,8 +94,10 @@ class MethodConfig(eqx.Module):
     ``self_shadow``: extrapolated by the field, or cast from each vertex) and
     ``self_visibility_grid`` (θ, φ) ray directions over each vertex's normal hemisphere for "rays",
     ``light_visibility`` "sh" | "images" (how mesh occluders shadow sphere lights: the field's SH,
-    or rays to the light looked up in the BSV's images) and ``light_cap`` (rings, sectors) of those
-    rays per light.
+    or rays to the light looked up in the BSV's images), ``light_cap`` (rings, sectors) of those
+    rays per light, and ``environment_lights`` K (0, or a power of two: the lat-long map's radiance
+    above ``environment_threshold`` × its mean split off as K distant lights shadowed through the
+    images; :mod:`jshadow.envlights`).
     """
 
     preset: str = eqx.field(static=True, default="default")
@@ -115,6 +117,8 @@ class MethodConfig(eqx.Module):
     self_visibility_grid: tuple[int, int] = eqx.field(static=True, default=(12, 48))
     light_visibility: str = eqx.field(static=True, default="sh")
     light_cap: tuple[int, int] = eqx.field(static=True, default=(4, 8))
+    environment_lights: int = eqx.field(static=True, default=0)
+    environment_threshold: float = eqx.field(static=True, default=4.0)
 
     def __check_init__(self):
         if self.model not in MODELS:
@@ -143,6 +147,8 @@ class MethodConfig(eqx.Module):
                 self_visibility_grid=tuple(self.self_visibility_grid),
                 light_visibility=self.light_visibility,
                 light_cap=tuple(self.light_cap),
+                environment_lights=self.environment_lights,
+                environment_threshold=float(self.environment_threshold),
             )
         except (ValueError, TypeError) as err:
             raise ConfigError(None, None, str(err)) from None

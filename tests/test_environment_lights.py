@@ -1,0 +1,253 @@
+"""A lat-long map's bright part as distant lights shadowed through the occlusion images
+(``[method] environment_lights``; :mod:`jshadow.envlights`).
+
+Claims tested: the median cut labels every pixel, makes equal-weight halves and keeps subtrees
+consecutive, and rejects bad input; the split is exact (rest + bright part = the map, the lights'
+energies sum to the bright part's, the irradiance maps add up) and clamps the rest at the
+threshold; a mesh sphere under a map with a small bright "sun" matches a brute-force sum over the
+map's pixels with exact ray casts far better than the n-band path; an occluder's own vertices are
+marked for the n-band fallback and the plane's are not; the Renderer's paths agree with
+``render``; the irradiance is homogeneous of degree 1 in the radiance (its gradient works) while
+geometry derivatives raise; config keys are read and checked; a traced image is refused in words.
+"""
+
+import dataclasses
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from test_scene import SMALL, f32, icosphere_occluder, plane
+
+from jshadow.config import ConfigError, config_from_dict
+from jshadow.entities import Environment, Method, Scene, latlong_to_dir
+from jshadow.envlights import median_cut, split_environment
+from jshadow.lights import environment_irradiance_map, environment_sh
+from jshadow.runner import Renderer
+from jshadow.scene import environment_visible_fraction, render, scene_images, scene_lighting
+from jshadow.visibility import ray_fan_any_hit
+
+SPLIT = dataclasses.replace(SMALL, light_visibility="images", environment_lights=8)
+SUN = np.array([0.35, 0.9, 0.25]) / np.linalg.norm([0.35, 0.9, 0.25])
+
+
+def _sun_map(h=32, w=64, sky=0.1, sun=400.0):
+    """A dim constant sky with the 2 × 2 pixels nearest SUN at ``sun`` (with a warm tint)."""
+    v = (np.arange(h) + 0.5) / h
+    u = (np.arange(w) + 0.5) / w
+    uu, vv = np.meshgrid(u, v)
+    d = np.asarray(latlong_to_dir(jnp.asarray(uu), jnp.asarray(vv)))
+    img = np.full((h, w, 3), sky, np.float32)
+    near = np.argsort(-(d @ SUN).ravel())[:4]
+    img.reshape(-1, 3)[near] = np.float32([sun, 0.9 * sun, 0.8 * sun])
+    return img
+
+
+def test_median_cut_labels_halves_and_order():
+    rng = np.random.default_rng(0)
+    w = rng.uniform(0.5, 1.5, (16, 32))
+    labels = median_cut(w, 8)
+    assert labels.shape == w.shape and set(np.unique(labels)) == set(range(8))
+    e = np.bincount(labels.ravel(), weights=w.ravel())
+    # every cut halves within one row or column of its region
+    assert e.max() / e.min() < 1.5
+    # depth-first order: the first cut's two halves are labels 0..3 and 4..7, each one rectangle
+    for half in (labels < 4, labels >= 4):
+        rows, cols = np.nonzero(half)
+        assert half[rows.min() : rows.max() + 1, cols.min() : cols.max() + 1].all()
+    one = np.zeros((4, 8))
+    one[1, 2] = 1.0  # a single bright pixel: one region holds all of it
+    e1 = np.bincount(median_cut(one, 16).ravel(), weights=one.ravel(), minlength=16)
+    assert np.count_nonzero(e1) == 1
+    with pytest.raises(ValueError, match="power of two"):
+        median_cut(w, 6)
+    with pytest.raises(ValueError, match="non-negative"):
+        median_cut(-w, 4)
+
+
+def test_split_is_exact_and_clamps_the_rest():
+    img = _sun_map()
+    env = Environment(f32(1.0, 0.5, 2.0), jnp.asarray(img), "hdr")
+    rest, lights = split_environment(env, 8, threshold=4.0)
+    h, w = img.shape[:2]
+    edges = np.cos(np.pi * np.arange(h + 1) / h)
+    omega = ((edges[:-1] - edges[1:]) * 2 * np.pi / w)[:, None, None]
+    mean_lum = float((img.mean(-1, keepdims=True) * omega).sum() / (4 * np.pi))
+    assert float(jnp.max(jnp.mean(rest.image, -1))) <= 4.0 * mean_lum * (1 + 1e-5)
+    bright = img - np.asarray(rest.image)
+    assert np.all(bright >= -1e-4)
+    want = (bright * omega).sum((0, 1)) * np.asarray(env.radiance)
+    np.testing.assert_allclose(np.asarray(lights.energy).sum(0), want, rtol=1e-4)
+    np.testing.assert_allclose(np.linalg.norm(np.asarray(lights.directions), axis=-1), 1.0, atol=1e-5)
+    # the lights sit at the sun; the irradiance maps and the SH of the parts add up to the map's
+    hot = np.asarray(lights.energy)[:, 0] > 0
+    assert np.all(np.asarray(lights.directions)[hot] @ SUN > math.cos(math.radians(8)))
+    full = environment_irradiance_map(env).values
+    parts = environment_irradiance_map(rest).values + lights.unoccluded.values
+    np.testing.assert_allclose(np.asarray(parts), np.asarray(full), rtol=1e-4)
+    np.testing.assert_allclose(
+        np.asarray(
+            environment_sh(rest, 4) + environment_sh(Environment(env.radiance, jnp.asarray(bright), "hdr"), 4)
+        ),
+        np.asarray(environment_sh(env, 4)),
+        rtol=1e-4,
+        atol=1e-4,
+    )
+    with pytest.raises(ValueError, match="lat-long"):
+        split_environment(Environment(f32(1, 1, 1)), 8)
+    with pytest.raises(ValueError, match="threshold"):
+        split_environment(env, 8, threshold=0.0)
+    with pytest.raises(ValueError, match="concrete"):
+        jax.jit(lambda im: split_environment(Environment(env.radiance, im, "hdr"), 8)[1].energy)(env.image)
+
+
+def _sun_scene(method, n=8, self_shadow=False):
+    occ = icosphere_occluder((0.0, 1.1, 0.0), 0.6, subdiv=2)
+    env = Environment(f32(1.0, 1.0, 1.0), jnp.asarray(_sun_map()), "hdr")
+    return Scene(method, plane(n=n, size=3.0), (occ,), (), env, self_shadow=self_shadow)
+
+
+def _brute_force(scene, sub=2, points=None, normals=None):
+    """Σ over the map's pixels (``sub``² directions each) of L ω cos⁺ V, V by exact ray casts from
+    ``points`` (default: the plane's receivers)."""
+    img = np.asarray(scene.environment.image, np.float64)
+    h, w = img.shape[:2]
+    v = (np.arange(h * sub) + 0.5) / (h * sub)
+    u = (np.arange(w * sub) + 0.5) / (w * sub)
+    uu, vv = np.meshgrid(u, v)
+    d = np.asarray(latlong_to_dir(jnp.asarray(uu), jnp.asarray(vv)), np.float64)
+    edges = np.cos(np.pi * np.arange(h * sub + 1) / (h * sub))
+    omega = np.broadcast_to(((edges[:-1] - edges[1:]) * 2 * np.pi / (w * sub))[:, None], d.shape[:2])
+    rad = np.repeat(np.repeat(img, sub, 0), sub, 1)
+    keep = rad.mean(-1) > 0
+    d, omega, rad = d[keep], omega[keep], rad[keep]
+    occ = scene.occluders[0]
+    pts = scene.receivers.points if points is None else points
+    normals = scene.receivers.normals if normals is None else normals
+    hit = np.asarray(
+        ray_fan_any_hit(
+            pts,
+            jnp.broadcast_to(jnp.asarray(d, jnp.float32), (pts.shape[0], *d.shape)),
+            occ.vertices(0.0),
+            occ.faces,
+        )
+    )
+    cos = np.maximum(np.asarray(normals, np.float64) @ d.T, 0.0)
+    return (cos * (1.0 - hit) * omega) @ rad
+
+
+def test_sun_shadow_matches_brute_force_far_better_than_n_bands():
+    scene = _sun_scene(SPLIT)
+    truth = _brute_force(scene)
+    ours = np.asarray(render(scene).irradiance, np.float64)
+    n_band = np.asarray(render(dataclasses.replace(scene, method=SMALL)).irradiance, np.float64)
+    mean = truth.mean()
+
+    def rel(x):
+        return float(np.sqrt(np.mean((x - truth) ** 2)) / mean)
+
+    print(f"sun shadow against the pixel sum: environment lights {rel(ours):.2%}, n-band {rel(n_band):.2%}")
+    assert truth.min() < 0.5 * truth.max()  # the sun's shadow falls on the plane
+    assert rel(ours) < 0.04
+    assert rel(ours) < 0.33 * rel(n_band)
+
+
+def test_own_vertices_fall_back_and_the_plane_does_not():
+    scene = _sun_scene(SPLIT, n=5, self_shadow=True)
+    out = render(scene)
+    points, normals = out.points, out.normals
+    lighting = scene_lighting(scene)
+    _, inside = environment_visible_fraction(
+        scene, scene_images(scene, 0.0), lighting.env_lights, points, normals
+    )
+    n_plane = scene.receivers.points.shape[0]
+    assert not np.any(np.asarray(inside[:n_plane])) and np.all(np.asarray(inside[n_plane:]))
+    assert np.all(np.isfinite(np.asarray(out.irradiance)))
+    # the own vertices' bright part is the n-band path's: close to the unsplit render there
+    unsplit = render(dataclasses.replace(scene, method=SMALL)).irradiance[n_plane:]
+    scale = float(jnp.mean(unsplit))
+    assert float(jnp.sqrt(jnp.mean((out.irradiance[n_plane:] - unsplit) ** 2))) < 0.05 * scale
+
+
+def test_own_vertices_with_rays_see_the_lights_exactly():
+    """With ``self_visibility = "rays"`` the own vertices' bright part uses exact rays toward the
+    lights: against the brute-force pixel sum at those vertices it beats the n-band fallback."""
+    rays = _sun_scene(dataclasses.replace(SPLIT, self_visibility="rays"), n=3, self_shadow=True)
+    fallback = dataclasses.replace(rays, method=SPLIT)
+    out = render(rays)
+    n_plane = rays.receivers.points.shape[0]
+    pts, nrm = out.points[n_plane:], out.normals[n_plane:]
+    truth = _brute_force(rays, points=pts, normals=nrm)
+    mean = truth.mean()
+
+    def rel(x):
+        return float(np.sqrt(np.mean((np.asarray(x[n_plane:], np.float64) - truth) ** 2)) / mean)
+
+    with_rays, without = rel(out.irradiance), rel(render(fallback).irradiance)
+    print(f"own vertices against the pixel sum: rays {with_rays:.2%}, n-band fallback {without:.2%}")
+    assert with_rays < 0.03 and with_rays < 0.5 * without
+    r = Renderer(rays)
+    got, _ = r.frame(0)
+    np.testing.assert_allclose(
+        np.asarray(got.irradiance), np.asarray(out.irradiance), atol=1e-5 * float(mean)
+    )
+    b, _ = Renderer(rays, split_stages=True, chunk=64).frame(0)
+    np.testing.assert_allclose(np.asarray(b.irradiance), np.asarray(out.irradiance), atol=1e-5 * float(mean))
+
+
+def test_renderer_paths_agree():
+    scene = _sun_scene(SPLIT, n=6, self_shadow=True)
+    ref = np.asarray(render(scene).irradiance)
+    r = Renderer(scene)
+    a, times = r.frame(0)
+    assert r.image_computations == 1 and "light_images_ms" in times
+    b, _ = Renderer(scene, split_stages=True, chunk=16).frame(0)
+    scale = float(np.abs(ref).max())
+    for x in (a, b):
+        np.testing.assert_allclose(np.asarray(x.irradiance), ref, atol=1e-5 * scale)
+
+
+def test_radiance_gradient_works_and_geometry_raises():
+    scene = _sun_scene(SPLIT, n=4)
+
+    def total(radiance):
+        env = dataclasses.replace(scene.environment, radiance=radiance)
+        return jnp.sum(render(dataclasses.replace(scene, environment=env)).irradiance)
+
+    r0 = f32(1.0, 0.7, 0.4)
+    value, g = jax.jit(jax.value_and_grad(total))(r0)
+    # irradiance is linear in each channel's radiance: Euler's identity for degree-1 homogeneity
+    np.testing.assert_allclose(float(jnp.dot(g, r0)), float(value), rtol=1e-4)
+    # the visible fraction refuses derivatives with respect to the receivers (and so the geometry)
+    images, lights = scene_images(scene, 0.0), scene_lighting(scene).env_lights
+    pts, nrm = scene.receivers.points, scene.receivers.normals
+
+    def fraction(shift):
+        return jnp.sum(environment_visible_fraction(scene, images, lights, pts + shift, nrm)[0])
+
+    with pytest.raises(ValueError, match="light_visibility"):
+        jax.grad(fraction)(jnp.float32(0.0))
+    assert float(fraction(jnp.float32(0.0))) < 3.0 * pts.shape[0]  # some of the sun is hidden
+
+
+def test_config_keys_are_read_and_checked():
+    base = {
+        "occluder": [{"type": "mesh", "shape": "egg", "subdivisions": 1, "center": [0, 1, 0], "radius": 0.5}],
+        "environment": {"type": "constant", "radiance": [1, 1, 1]},
+        "receiver": {"type": "plane", "center": [0, 0, 0], "size": [2, 2], "resolution": [2, 2]},
+    }
+    m = config_from_dict(
+        {
+            **base,
+            "method": {"light_visibility": "images", "environment_lights": 16, "environment_threshold": 2.5},
+        }
+    ).method.to_method()
+    assert m.environment_lights == 16 and m.environment_threshold == 2.5
+    with pytest.raises(ConfigError, match="light_visibility = 'images'"):
+        config_from_dict({**base, "method": {"environment_lights": 8}})
+    with pytest.raises(ConfigError, match="power of two"):
+        config_from_dict({**base, "method": {"light_visibility": "images", "environment_lights": 12}})
+    with pytest.raises(ConfigError, match="environment_threshold"):
+        config_from_dict({**base, "method": {"environment_threshold": -1.0}})
+    assert Method().environment_lights == 0  # off by default: not differentiable in geometry
