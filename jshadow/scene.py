@@ -601,6 +601,9 @@ def light_visible_fractions(
     return _no_derivative_guard(forward, geometry, LIGHT_IMAGES_NO_DERIVATIVE)
 
 
+_INSIDE = 1.0 + 1e-4  # receivers within this × a mesh's bounding radius fall back to the n-band path
+
+
 def environment_visible_fraction(
     scene: Scene,
     images: tuple[OcclusionImages | None, ...],
@@ -678,9 +681,6 @@ def environment_visible_fraction(
             near = jnp.sum((jax.lax.stop_gradient(points) - c) ** 2, -1) < (r * _INSIDE) ** 2
             inside = inside | (near if owners is None else near & (owners != i))
     return fraction, inside
-
-
-_INSIDE = 1.0 + 1e-4  # receivers within this × a mesh's bounding radius fall back to the n-band path
 
 
 def occluder_visibilities(
