@@ -1,9 +1,9 @@
 """The bright part of a lat-long environment map as a few distant lights (median cut).
 
 An environment's n-band SH cannot hold a studio's small, intense lamps: the studio map of
-``configs/bunny_studio.toml`` puts 57 % of its energy into 0.05 % of the sphere and 91 % into 2 %,
-and even exact n-band visibility leaves 19 % relative RMSE on its floor at 4 bands
-(``experiments/band_limit.py``). :func:`split_environment` therefore splits a map into
+``configs/bunny_studio.toml`` puts 57 % of its energy into 0.05 % of the sphere and 91 % into 2 %
+(``experiments/studio_lamps.py``), and even exact n-band visibility leaves 19 % relative RMSE on
+its floor at 4 bands (``experiments/band_limit.py``). :func:`split_environment` therefore splits a map into
 
 * a *rest* — each pixel's radiance clamped to ``τ = threshold × (the map's mean luminance)``,
   colour kept — that stays on the n-band path of every other environment, and
