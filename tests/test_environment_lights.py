@@ -8,7 +8,8 @@ threshold; a mesh sphere under a map with a small bright "sun" matches a brute-f
 map's pixels with exact ray casts far better than the n-band path; an occluder's own vertices are
 marked for the n-band fallback and the plane's are not; the Renderer's paths agree with
 ``render``; the irradiance is homogeneous of degree 1 in the radiance (its gradient works) while
-geometry derivatives raise; config keys are read and checked; a traced image is refused in words.
+geometry derivatives raise; config keys are read and checked; a traced image is refused in words;
+a deforming mesh with own-vertex rays renders under jit with a traced time as it does eagerly.
 """
 
 import dataclasses
@@ -23,9 +24,10 @@ from test_scene import SMALL, f32, icosphere_occluder, plane
 from jshadow.config import ConfigError, config_from_dict
 from jshadow.entities import Environment, Method, Scene, latlong_to_dir
 from jshadow.envlights import median_cut, split_environment
+from jshadow.geometry import Twist
 from jshadow.lights import environment_irradiance_map, environment_sh
 from jshadow.runner import Renderer
-from jshadow.scene import environment_visible_fraction, render, scene_images, scene_lighting
+from jshadow.scene import environment_visible_fraction, render, render_at, scene_images, scene_lighting
 from jshadow.visibility import ray_fan_any_hit
 
 SPLIT = dataclasses.replace(SMALL, light_visibility="images", environment_lights=8)
@@ -251,3 +253,21 @@ def test_config_keys_are_read_and_checked():
     with pytest.raises(ConfigError, match="environment_threshold"):
         config_from_dict({**base, "method": {"environment_threshold": -1.0}})
     assert Method().environment_lights == 0  # off by default: not differentiable in geometry
+
+
+def test_deforming_mesh_with_rays_under_jit_and_in_the_renderer():
+    """A twisting mesh with own-vertex rays toward the lights: under ``jax.jit`` with the time
+    traced, the casts and images are made in the trace and give the Renderer's frame (concrete
+    casts; up to grazing rays that the two may decide differently); the Renderer casts every frame."""
+    occ = icosphere_occluder((0, 1.1, 0), 0.6, Twist(jnp.float32(0.0), jnp.float32(1.0), 1), subdiv=1)
+    env = Environment(f32(1.0, 1.0, 1.0), jnp.asarray(_sun_map()), "hdr")
+    small = dict(bsv_grid=(6, 8), directions=(8, 8), self_visibility_grid=(4, 8))
+    method = dataclasses.replace(SPLIT, self_visibility="rays", **small)
+    scene = Scene(method, plane(n=3, size=3.0), (occ,), (), env, self_shadow=True, n_frames=3)
+    jitted = np.asarray(jax.jit(lambda t: render_at(scene, t).irradiance)(jnp.float32(0.5)))
+    r = Renderer(scene)
+    frames = [np.asarray(r.frame(f)[0].irradiance) for f in range(3)]  # t = 0, 0.5, 1: concrete casts
+    assert r.self_visibility_computations == 3  # a deforming mesh: cast every frame
+    scale = float(np.abs(frames[1]).max())
+    np.testing.assert_allclose(jitted, frames[1], atol=1e-3 * scale)
+    assert np.abs(frames[2] - frames[0]).max() > 1e-3 * scale  # the twist changes the shading
