@@ -64,42 +64,25 @@ CASES = [
     "airplane_studio_twist",
 ]
 # label -> [method] keys over the default
+IMAGES = dict(light_visibility="images")
+FINE = dict(light_cap=(8, 16), bsv_grid=(24, 40), directions=(64, 64))  # finer grid, images and cap
+ENV32 = dict(IMAGES, environment_lights=32)
+ENV64_FINE = dict(IMAGES, environment_lights=64, **FINE)
+RAYS = dict(self_visibility="rays")  # the own vertices' bright part by exact rays (self_shadow only)
 SETTINGS = {
     "default (n-band)": {},
-    "images, cap 2x8": dict(light_visibility="images", light_cap=(2, 8)),
-    "images (12x20, 32², cap 4x8)": dict(light_visibility="images"),
-    "images, cap 8x16": dict(light_visibility="images", light_cap=(8, 16)),
-    "images, 24x40, 64², cap 8x16": dict(
-        light_visibility="images", light_cap=(8, 16), bsv_grid=(24, 40), directions=(64, 64)
-    ),
+    "images, cap 2x8": dict(IMAGES, light_cap=(2, 8)),
+    "images (12x20, 32², cap 4x8)": IMAGES,
+    "images, cap 8x16": dict(IMAGES, light_cap=(8, 16)),
+    "images, 24x40, 64², cap 8x16": dict(IMAGES, **FINE),
     # the map's bright part as distant lights through the same images (lat-long maps only)
-    "images + 8 env lights": dict(light_visibility="images", environment_lights=8),
-    "images + 32 env lights": dict(light_visibility="images", environment_lights=32),
-    "images + 32 env lights, threshold 1": dict(
-        light_visibility="images", environment_lights=32, environment_threshold=1.0
-    ),
-    "images + 32 env lights, threshold 16": dict(
-        light_visibility="images", environment_lights=32, environment_threshold=16.0
-    ),
-    # ... and the own vertices' bright part by exact rays (self_visibility = "rays"; self_shadow only)
-    "images + 32 env lights, self rays": dict(
-        light_visibility="images", environment_lights=32, self_visibility="rays"
-    ),
-    "images + 64 env lights, 24x40, 64², cap 8x16, self rays": dict(
-        light_visibility="images",
-        environment_lights=64,
-        light_cap=(8, 16),
-        bsv_grid=(24, 40),
-        directions=(64, 64),
-        self_visibility="rays",
-    ),
-    "images + 64 env lights, 24x40, 64², cap 8x16": dict(
-        light_visibility="images",
-        environment_lights=64,
-        light_cap=(8, 16),
-        bsv_grid=(24, 40),
-        directions=(64, 64),
-    ),
+    "images + 8 env lights": dict(IMAGES, environment_lights=8),
+    "images + 32 env lights": ENV32,
+    "images + 32 env lights, threshold 1": dict(ENV32, environment_threshold=1.0),
+    "images + 32 env lights, threshold 16": dict(ENV32, environment_threshold=16.0),
+    "images + 32 env lights, self rays": dict(ENV32, **RAYS),
+    "images + 64 env lights, 24x40, 64², cap 8x16, self rays": dict(ENV64_FINE, **RAYS),
+    "images + 64 env lights, 24x40, 64², cap 8x16": ENV64_FINE,
 }
 ROWS = {  # the error maps' rows: (label, setting); a row is left blank where its setting does not apply
     "default (n-band)": "default (n-band)",
