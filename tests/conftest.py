@@ -5,9 +5,13 @@
 * Dtype promotion is strict: mixing float32 and float64 arrays, or ints and floats, is an error
   rather than a silent upcast.
 * Warnings are errors (pyproject.toml).
+* XLA's persistent compilation cache is on, in a folder made for this test run and shared by its
+  xdist workers (see ``_compilation_cache``).
 """
 
 import os
+import shutil
+import tempfile
 
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
 
@@ -17,6 +21,39 @@ import pytest  # noqa: E402
 from hypothesis import settings  # noqa: E402
 
 jax.config.update("jax_numpy_dtype_promotion", "strict")
+
+_CACHE_ENV = "JSHADOW_TEST_XLA_CACHE"
+_OWN_CACHE = _CACHE_ENV not in os.environ  # this process (the xdist controller, or a lone pytest) made it
+
+
+def _compilation_cache() -> None:
+    """Turn on XLA's persistent compilation cache for this test run.
+
+    Most of the suite's time is compilation, and many tests compile the same computation again
+    (a new ``Renderer`` or closure of the same config is a new ``jax.jit`` to JAX's in-memory cache,
+    but the same HLO). The persistent cache is keyed by the HLO, so those become file reads. The
+    folder is made by the first process that imports this file — xdist's controller, before it
+    starts the workers, which inherit its path through ``JSHADOW_TEST_XLA_CACHE`` — and removed
+    by that process at the end, so every run starts empty and no stale entry outlives it. A size
+    limit is set because only then does JAX take a file lock around reads and writes, which two
+    workers writing one entry need. ``JSHADOW_TEST_XLA_CACHE=off`` turns the cache off.
+    """
+    if _OWN_CACHE:
+        os.environ[_CACHE_ENV] = tempfile.mkdtemp(prefix="jshadow-xla-cache-")
+    path = os.environ[_CACHE_ENV]
+    if path == "off":
+        return
+    jax.config.update("jax_compilation_cache_dir", path)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.1)
+    jax.config.update("jax_compilation_cache_max_size", 8 << 30)
+
+
+_compilation_cache()
+
+
+def pytest_unconfigure(config):
+    if _OWN_CACHE and os.environ.get(_CACHE_ENV, "off") != "off":
+        shutil.rmtree(os.environ[_CACHE_ENV], ignore_errors=True)
 
 settings.register_profile("ci", max_examples=30, deadline=None, derandomize=True)
 settings.register_profile("dev", max_examples=15, deadline=None)
