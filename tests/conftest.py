@@ -51,9 +51,29 @@ def _compilation_cache() -> None:
 _compilation_cache()
 
 
+def subprocess_env(*, xla_flags: str = "") -> dict[str, str]:
+    """The environment for a test's child Python process: CPU only, this run's XLA flags with
+    ``xla_flags`` appended, and this run's compilation cache, so that a child compiling what an
+    earlier one (or this process) compiled reads it from the cache instead."""
+    env = dict(os.environ, JAX_PLATFORMS="cpu")
+    if xla_flags:
+        env["XLA_FLAGS"] = f"{env.get('XLA_FLAGS', '')} {xla_flags}".strip()
+    path = os.environ[_CACHE_ENV]
+    if path != "off":
+        env.update(
+            JAX_COMPILATION_CACHE_DIR=path,
+            JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=str(
+                jax.config.jax_persistent_cache_min_compile_time_secs
+            ),
+            JAX_COMPILATION_CACHE_MAX_SIZE=str(jax.config.jax_compilation_cache_max_size),
+        )
+    return env
+
+
 def pytest_unconfigure(config):
     if _OWN_CACHE:  # the folder this process made (never "off": that comes from outside)
         shutil.rmtree(os.environ[_CACHE_ENV], ignore_errors=True)
+
 
 settings.register_profile("ci", max_examples=30, deadline=None, derandomize=True)
 settings.register_profile("dev", max_examples=15, deadline=None)

@@ -4,12 +4,12 @@ Every case must give exit status 2, exactly one line on stderr naming the key or
 traceback, and no output files. Open meshes warn (one line) and still render.
 """
 
-import os
 import subprocess
 import sys
 
 import numpy as np
 import pytest
+from conftest import subprocess_env
 
 from jshadow.cli import _atomic_write, main
 
@@ -237,13 +237,12 @@ def test_open_mesh_warns_in_one_line_and_still_renders(folder, capsys):
 def test_bad_mesh_in_a_fresh_process_has_no_traceback(folder):
     cfg = folder / "scene.toml"
     cfg.write_text(_mesh("range.obj"))
-    env = dict(os.environ, JAX_PLATFORMS="cpu")
     p = subprocess.run(
         [sys.executable, "-m", "jshadow.cli", "render", str(cfg), "--out", str(folder / "out")],
         capture_output=True,
         text=True,
         timeout=300,
-        env=env,
+        env=subprocess_env(),
     )
     lines = [line for line in p.stderr.splitlines() if line.strip()]
     assert p.returncode == 2 and len(lines) == 1 and "range.obj" in lines[0], p.stderr

@@ -6,6 +6,7 @@ import sys
 
 import numpy as np
 import pytest
+from conftest import subprocess_env
 
 from jshadow.cli import main
 
@@ -72,6 +73,7 @@ def test_misspelt_key_exits_2_with_one_line_and_no_output(tmp_path, scene_file):
         capture_output=True,
         text=True,
         timeout=300,
+        env=subprocess_env(),
     )
     lines = [line for line in p.stderr.splitlines() if line.strip()]
     assert p.returncode == 2, p.stderr

@@ -1,7 +1,6 @@
 """Determinism: the same config and seed give bitwise-identical outputs on the same machine,
 within one process and across processes (render and Monte Carlo reference)."""
 
-import os
 import subprocess
 import sys
 
@@ -9,6 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import subprocess_env
 
 import jshadow
 from jshadow import runner
@@ -167,21 +167,19 @@ def test_cli_outputs_identical_across_processes(config_file, tmp_path):
         "assert main(['render', cfg, '--out', d + '/render', '--no-warm']) == 0; "
         "assert main(['reference', cfg, '--spp', '8', '--seed', '5', '--out', d + '/reference']) == 0"
     )
-    env = dict(os.environ, JAX_PLATFORMS="cpu")
     runs = [tmp_path / "run0", tmp_path / "run1"]
-    procs = [  # the two processes run at the same time
-        subprocess.Popen(
+    # One after the other, sharing this run's compilation cache: the second process loads what the
+    # first compiled (a cache hit is keyed by the program, so a program that differed between the
+    # processes would still be compiled anew, and its outputs compared below).
+    for d in runs:
+        p = subprocess.run(
             [sys.executable, "-c", code, str(d), str(config_file)],
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
+            capture_output=True,
             text=True,
-            env=env,
+            timeout=600,
+            env=subprocess_env(),
         )
-        for d in runs
-    ]
-    for p in procs:
-        _, err = p.communicate(timeout=600)
-        assert p.returncode == 0, err[-3000:]
+        assert p.returncode == 0, p.stderr[-3000:]
     for sub, keys in (("render", KEYS), ("reference", (*KEYS, "irradiance_stderr"))):
         for f in range(2):
             with (

@@ -9,7 +9,6 @@ small matrix products differently for another shape; measured: at most 4 ulp).
 """
 
 import json
-import os
 import subprocess
 import sys
 import textwrap
@@ -18,6 +17,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import subprocess_env
 
 from jshadow import _parallel
 
@@ -110,7 +110,7 @@ SCRIPT = textwrap.dedent(
 def _two_devices(tmp_path):
     script = tmp_path / "run.py"
     script.write_text(SCRIPT)
-    env = dict(os.environ, JAX_PLATFORMS="cpu", XLA_FLAGS="--xla_force_host_platform_device_count=2")
+    env = subprocess_env(xla_flags="--xla_force_host_platform_device_count=2")
     p = subprocess.run(
         [sys.executable, str(script), str(tmp_path)], capture_output=True, text=True, timeout=600, env=env
     )
