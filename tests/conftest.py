@@ -70,6 +70,32 @@ def subprocess_env(*, xla_flags: str = "") -> dict[str, str]:
     return env
 
 
+# Modules whose tests take longest (tens of seconds each, mostly compilation), slowest first. They are
+# run first so that the two xdist workers end together on short tests, instead of one worker
+# starting a minute-long test while the other has nothing left (in alphabetical order, several of
+# them came last).
+_SLOW_FIRST = (
+    "test_sharding",
+    "test_stress",
+    "test_edgescan_grad",
+    "test_self_visibility",
+    "test_render_grad",
+    "test_determinism",
+    "test_light_images",
+    "test_environment_lights",
+    "test_scene",
+    "test_edgescan",
+)
+
+
+def pytest_collection_modifyitems(config, items):
+    def rank(item):
+        name = item.module.__name__.rpartition(".")[2] if item.module else ""
+        return _SLOW_FIRST.index(name) if name in _SLOW_FIRST else len(_SLOW_FIRST)
+
+    items.sort(key=rank)  # stable: the order within a module is kept
+
+
 def pytest_unconfigure(config):
     if _OWN_CACHE:  # the folder this process made (never "off": that comes from outside)
         shutil.rmtree(os.environ[_CACHE_ENV], ignore_errors=True)
