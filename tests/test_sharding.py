@@ -121,7 +121,7 @@ def _two_devices(tmp_path):
 
 
 def test_two_host_devices_sharded_receivers_frames_and_cli(tmp_path):
-    # One subprocess with two CPU devices (about 100 s, mostly compilation) checks all of the
+    # One subprocess with two CPU devices (about 70 s in the suite, mostly compilation) checks all of the
     # module docstring's multi-device claims; as separate tests sharing a module fixture, each
     # pytest-xdist worker that picked one of them up ran the subprocess again.
     r = _two_devices(tmp_path)
