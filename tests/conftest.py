@@ -70,10 +70,10 @@ def subprocess_env(*, xla_flags: str = "") -> dict[str, str]:
     return env
 
 
-# Modules whose tests take longest (tens of seconds each, mostly compilation), slowest first. They are
-# run first so that the two xdist workers end together on short tests, instead of one worker
-# starting a minute-long test while the other has nothing left (in alphabetical order, several of
-# them came last).
+# Modules that hold the suite's slowest tests (25-75 s each in a full run, mostly compilation),
+# slowest first. They are run first so that the two xdist workers end together on short tests,
+# instead of one worker starting a minute-long test while the other has nothing left (in
+# alphabetical order, several of them came last).
 _SLOW_FIRST = (
     "test_sharding",
     "test_stress",
@@ -90,7 +90,7 @@ _SLOW_FIRST = (
 
 def pytest_collection_modifyitems(config, items):
     def rank(item):
-        name = item.module.__name__.rpartition(".")[2] if item.module else ""
+        name = item.path.stem  # every kind of item has a path; not every kind has a module
         return _SLOW_FIRST.index(name) if name in _SLOW_FIRST else len(_SLOW_FIRST)
 
     items.sort(key=rank)  # stable: the order within a module is kept
