@@ -27,6 +27,8 @@ __all__ = [
     "small_sum",
     "safe_norm",
     "safe_normalize",
+    "select_max",
+    "select_min",
 ]
 
 
@@ -209,3 +211,27 @@ def safe_normalize(v: Float[ArrayLike, "... d"], axis: int = -1) -> Float[Array,
     ok = n2 > 0
     inv = jnp.where(ok, 1.0 / jnp.sqrt(jnp.where(ok, n2, 1.0)), 0.0)
     return v * inv
+
+
+def select_max(x: Float[ArrayLike, "..."], axis: int = -1) -> Float[Array, "..."]:
+    """``jnp.max(x, axis)`` whose gradient goes to one maximal element (the first).
+
+    ``jnp.max``'s derivative is ``g · [x = max] / Σ [x = max]``: it compares ``x`` with the maximum
+    and divides by the number of ties. XLA may recompute ``x`` inside the two fused kernels with
+    different rounding (for example one of them contracted into a fused multiply–add), and then
+    no element equals the maximum: ``1/0``. Measured: the y-maximum of ``c + 0.6 · u`` for a
+    42-vertex mesh, at ``--xla_backend_optimization_level=0`` on CPU, gave an infinite gradient.
+    Here the index is taken once (``argmax``) and the value gathered from it, so the
+    derivative is a one-hot scatter: finite for any rounding. At ties the whole gradient goes to
+    the first tied element (a valid one-sided derivative) instead of being split equally.
+    """
+    x = jnp.asarray(x)
+    i = jnp.argmax(x, axis=axis, keepdims=True)
+    return jnp.squeeze(jnp.take_along_axis(x, i, axis=axis), axis=axis)
+
+
+def select_min(x: Float[ArrayLike, "..."], axis: int = -1) -> Float[Array, "..."]:
+    """``jnp.min(x, axis)`` with the gradient of :func:`select_max` (one-hot at the first minimum)."""
+    x = jnp.asarray(x)
+    i = jnp.argmin(x, axis=axis, keepdims=True)
+    return jnp.squeeze(jnp.take_along_axis(x, i, axis=axis), axis=axis)

@@ -16,6 +16,8 @@ from jshadow._numerics import (
     safe_norm,
     safe_normalize,
     safe_sqrt,
+    select_max,
+    select_min,
     small_sum,
 )
 
@@ -150,3 +152,27 @@ def test_small_sum_is_jnp_sum(shape, axis, keepdims):
     np.testing.assert_allclose(
         g, 2 * jnp.broadcast_to(jnp.sum(x, axis=axis, keepdims=True), shape), rtol=1e-6
     )
+
+
+@pytest.mark.parametrize("shape, axis", [((5,), 0), ((1, 4), -1), ((3, 1, 2, 6), -1), ((3, 7, 2), 1)])
+@pytest.mark.parametrize("kind", ["max", "min"])
+def test_select_max_and_min_are_the_reductions_with_one_hot_gradients(shape, axis, kind):
+    select, ref, arg = {
+        "max": (select_max, jnp.max, jnp.argmax),
+        "min": (select_min, jnp.min, jnp.argmin),
+    }[kind]
+    x = jnp.asarray(np.random.default_rng(1).normal(size=shape), jnp.float32)
+    want = ref(x, axis=axis)
+    np.testing.assert_array_equal(select(x, axis), want)
+    weights = jnp.arange(1.0, 1.0 + want.size).reshape(want.shape)
+    g = jax.grad(lambda x: jnp.sum(select(x, axis) * weights))(x)
+    # every slice along ``axis`` sends its whole cotangent to its extreme element
+    hot = jax.nn.one_hot(arg(x, axis=axis), x.shape[axis], axis=axis)
+    np.testing.assert_array_equal(g, hot * jnp.expand_dims(weights, axis))
+
+
+def test_select_max_at_ties_gives_the_whole_gradient_to_the_first():
+    x = jnp.asarray([2.0, -1.0, 2.0, 2.0])
+    np.testing.assert_array_equal(jax.grad(select_max)(x), [1.0, 0.0, 0.0, 0.0])
+    np.testing.assert_array_equal(jax.grad(select_min)(-x), [1.0, 0.0, 0.0, 0.0])
+    np.testing.assert_array_equal(jax.grad(select_max)(jnp.zeros(3)), [1.0, 0.0, 0.0])

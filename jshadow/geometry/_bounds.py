@@ -13,7 +13,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
-from .._numerics import safe_div, safe_norm
+from .._numerics import safe_div, safe_norm, select_max, select_min
 
 __all__ = ["bounding_sphere", "normalize_to_unit_sphere"]
 
@@ -29,14 +29,16 @@ def bounding_sphere(
     Gradients flow (piecewise-linear / piecewise-smooth): the centre's gradient reaches only the
     vertices attaining the per-axis minimum and maximum; the radius's gradient reaches the farthest
     vertex directly and, through the centre, those extreme vertices. Where several vertices tie for a
-    minimum, maximum or the farthest distance, JAX's min/max rule splits the gradient equally among
-    them (finite, no NaN). A radius of zero (all vertices equal) has a zero, not NaN, gradient.
+    minimum, maximum or the farthest distance, the gradient goes to the first of them
+    (:func:`jshadow._numerics.select_max`: finite for any rounding, unlike ``jnp.max``'s rule, which
+    divides by a tie count that fused recomputation can make zero). A radius of zero (all
+    vertices equal) has a zero, not NaN, gradient.
     """
     v = jnp.asarray(vertices)
     if v.ndim < 2 or v.shape[-1] != 3 or v.shape[-2] == 0:
         raise ValueError(f"bounding_sphere expects vertices of shape (..., V, 3) with V >= 1, got {v.shape}")
-    center = 0.5 * (jnp.min(v, axis=-2) + jnp.max(v, axis=-2))
-    radius = jnp.max(safe_norm(v - center[..., None, :]), axis=-1)
+    center = 0.5 * (select_min(v, axis=-2) + select_max(v, axis=-2))
+    radius = select_max(safe_norm(v - center[..., None, :]), axis=-1)
     return center, radius
 
 
