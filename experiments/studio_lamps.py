@@ -27,9 +27,8 @@ import imageio.v3 as iio
 import numpy as np
 
 from jshadow import Renderer
-from jshadow.cli import _picture
 from jshadow.config import build_scene, load_config
-from jshadow.picture import exposure_for
+from jshadow.picture import draw_scene, exposure_for
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 OUT = ROOT / "experiments" / "figures" / "bunny_studio_lamps.png"
@@ -71,7 +70,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         for i, (label, (scene, res)) in enumerate(results.items()):
             path = pathlib.Path(tmp) / f"{i}.png"
-            _picture(path, scene, res, 0.0, exposure, f"bunny_studio: {label}")
+            draw_scene(path, scene, res, 0.0, exposure=exposure, title=f"bunny_studio: {label}")
             panels.append(iio.imread(path))
     OUT.parent.mkdir(parents=True, exist_ok=True)
     iio.imwrite(OUT, np.concatenate(panels, axis=1))

@@ -96,41 +96,9 @@ def _make_out(out: str) -> pathlib.Path:
 
 
 def _picture(path, scene, res, t, exposure, title):
-    from .entities import MeshOccluder, SphereOccluder
-    from .picture import default_camera, draw_frame, sphere_mesh
+    from .picture import draw_scene
 
-    rec = scene.receivers
-    n_plane = rec.points.shape[0]
-    plane = None
-    if rec.grid_shape is not None:
-        pts = np.asarray(rec.points)
-        lo, hi = pts.min(0), pts.max(0)
-        plane = {
-            "center": (lo + hi) / 2,
-            "size": (hi[0] - lo[0], hi[2] - lo[2]),
-            "grid_shape": rec.grid_shape,
-            "radiance": np.asarray(res.radiance)[:n_plane],
-        }
-        camera = default_camera(plane["center"], plane["size"])
-    else:
-        camera = default_camera(np.zeros(3), (4.0, 4.0))
-    meshes, offset = [], n_plane
-    for occ in scene.occluders:
-        if isinstance(occ, MeshOccluder):
-            v = np.asarray(occ.vertices(t))
-            m = {"vertices": v, "faces": np.asarray(occ.faces)}
-            if scene.self_shadow:
-                m["vertex_radiance"] = np.asarray(res.radiance)[offset : offset + len(v)]
-                offset += len(v)
-            meshes.append(m)
-        elif isinstance(occ, SphereOccluder):
-            v, f = sphere_mesh(np.asarray(occ.center), float(occ.radius), 3)
-            meshes.append({"vertices": v, "faces": f})
-    for light in scene.lights:
-        v, f = sphere_mesh(np.asarray(light.center), float(light.radius), 2)
-        c = np.asarray(light.radiance, float)
-        meshes.append({"vertices": v, "faces": f, "emit": np.clip(c / max(c.max(), 1e-12), 0, 1)})
-    _atomic_write(path, lambda fh: draw_frame(fh, camera, plane, meshes, exposure=exposure, title=title))
+    _atomic_write(path, lambda fh: draw_scene(fh, scene, res, t, exposure=exposure, title=title))
 
 
 def _frame_arrays(scene, res, extra=None):

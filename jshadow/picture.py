@@ -15,7 +15,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-__all__ = ["Camera", "default_camera", "tonemap", "draw_frame", "exposure_for"]
+__all__ = ["Camera", "default_camera", "tonemap", "draw_frame", "draw_scene", "exposure_for"]
 
 
 class Camera:
@@ -181,6 +181,58 @@ def draw_frame(
     else:
         with open(path, "wb") as fh:
             fh.write(buf.getvalue())
+
+
+def draw_scene(path, scene, result, t: float = 0.0, exposure: float = 1.0, title: str | None = None) -> None:
+    """Write a PNG of one rendered frame of ``scene`` (what ``jshadow render`` writes per frame).
+
+    Args:
+        path: a file name or a binary file object.
+        scene: the :class:`jshadow.entities.Scene` that was rendered.
+        result: its ``RenderResult`` (``radiance`` (N, 3): the plane's receivers first, then, with
+            self-shadowing, each mesh occluder's own vertices in order).
+        t: the animation time in [0, 1] at which the meshes are drawn (the frame's time).
+        exposure, title: as for :func:`draw_frame`.
+
+    The plane is drawn when the receivers form a grid (``grid_shape``), with a camera framing it;
+    mesh occluders with their self-shadowed vertex radiance when the scene computed it, sphere
+    occluders as shaded icospheres, sphere lights in their colour.
+    """
+    from .entities import MeshOccluder, SphereOccluder
+
+    rec = scene.receivers
+    n_plane = rec.points.shape[0]
+    radiance = np.asarray(result.radiance)
+    plane = None
+    if rec.grid_shape is not None:
+        pts = np.asarray(rec.points)
+        lo, hi = pts.min(0), pts.max(0)
+        plane = {
+            "center": (lo + hi) / 2,
+            "size": (hi[0] - lo[0], hi[2] - lo[2]),
+            "grid_shape": rec.grid_shape,
+            "radiance": radiance[:n_plane],
+        }
+        camera = default_camera(plane["center"], plane["size"])
+    else:
+        camera = default_camera(np.zeros(3), (4.0, 4.0))
+    meshes, offset = [], n_plane
+    for occ in scene.occluders:
+        if isinstance(occ, MeshOccluder):
+            v = np.asarray(occ.vertices(t))
+            m = {"vertices": v, "faces": np.asarray(occ.faces)}
+            if scene.self_shadow:
+                m["vertex_radiance"] = radiance[offset : offset + len(v)]
+                offset += len(v)
+            meshes.append(m)
+        elif isinstance(occ, SphereOccluder):
+            v, f = sphere_mesh(np.asarray(occ.center), float(occ.radius), 3)
+            meshes.append({"vertices": v, "faces": f})
+    for light in scene.lights:
+        v, f = sphere_mesh(np.asarray(light.center), float(light.radius), 2)
+        c = np.asarray(light.radiance, float)
+        meshes.append({"vertices": v, "faces": f, "emit": np.clip(c / max(c.max(), 1e-12), 0, 1)})
+    draw_frame(path, camera, plane, meshes, exposure=exposure, title=title)
 
 
 def sphere_mesh(center, radius, level=2):
