@@ -43,6 +43,7 @@ from . import _parallel
 from .entities import MeshOccluder, Receivers, Scene, frame_time, receivers_at_time
 from .scene import (
     RenderResult,
+    assemble_own_rows,
     combine,
     image_fractions,
     occluder_bsv,
@@ -52,9 +53,7 @@ from .scene import (
     occluder_own_visibility,
     occluder_visibilities,
     scene_lighting,
-    self_light_rows,
     self_visibility_owners,
-    self_visibility_rows,
     shared_normal_count,
     uses_light_images,
     uses_self_rays,
@@ -289,9 +288,13 @@ class Renderer:
                     self._static_own[i] = (v, vl)
             own.append(v)
             own_lights.append(vl)
-        out = (self_visibility_rows(self.scene, own), self._owners)
-        if lights is not None:
-            out = (*out, self_light_rows(self.scene, own_lights, lights.directions.shape[0]))
+        out = assemble_own_rows(
+            self.scene,
+            own,
+            None if lights is None else own_lights,
+            None if lights is None else lights.directions,
+            self._owners,
+        )
         if all(shape_is_static(o) for o in self.scene.occluders if isinstance(o, MeshOccluder)):
             self._static_rows = out
         return out

@@ -22,12 +22,13 @@ from __future__ import annotations
 
 import functools
 import math
+from collections.abc import Sequence
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Bool, Float
+from jaxtyping import Array, Bool, Float, Int
 
 from . import sh
 from ._numerics import safe_norm, safe_normalize
@@ -80,6 +81,7 @@ __all__ = [
     "occluder_own_light_visibility",
     "self_light_rows",
     "own_rows_at_time",
+    "assemble_own_rows",
     "uses_environment_lights",
     "uses_light_images",
     "occluder_images",
@@ -471,12 +473,32 @@ def own_rows_at_time(scene: Scene, t) -> tuple[Array, ...] | None:
         return None
     meshes = [o for o in scene.occluders if isinstance(o, MeshOccluder)]
     own = [occluder_own_visibility(o, t, scene) for o in meshes]
-    out = (self_visibility_rows(scene, own), jnp.asarray(self_visibility_owners(scene)))
     if not uses_environment_lights(scene):
-        return out
+        return assemble_own_rows(scene, own)
     d = scene_lighting(scene).env_lights.directions
-    lights = [occluder_own_light_visibility(o, t, scene, d) for o in meshes]
-    return (*out, self_light_rows(scene, lights, d.shape[0]))
+    return assemble_own_rows(scene, own, [occluder_own_light_visibility(o, t, scene, d) for o in meshes], d)
+
+
+def assemble_own_rows(
+    scene: Scene,
+    own: Sequence[Array],
+    own_lights: Sequence[Array] | None = None,
+    light_directions: Float[Array, "K 3"] | None = None,
+    owners: Int[Array, " N"] | None = None,
+) -> tuple[Array, ...]:
+    """The tuple :func:`own_rows_at_time` returns, from each mesh occluder's cast visibility.
+
+    ``own``: per mesh occluder (in scene order) its :func:`occluder_own_visibility`;
+    ``own_lights`` (with ``light_directions``, the (K, 3) environment-light directions): its
+    :func:`occluder_own_light_visibility`, or None without environment lights; ``owners``: the
+    precomputed :func:`self_visibility_owners` as an array (computed here when None).
+    """
+    if owners is None:
+        owners = jnp.asarray(self_visibility_owners(scene))
+    out = (self_visibility_rows(scene, own), owners)
+    if own_lights is None:
+        return out
+    return (*out, self_light_rows(scene, own_lights, light_directions.shape[0]))
 
 
 LIGHT_IMAGES_NO_DERIVATIVE = (
