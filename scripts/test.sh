@@ -9,10 +9,16 @@ if [ ! -x .venv/bin/python ]; then "$PY" -m venv .venv; fi
 .venv/bin/ruff check jshadow tests experiments benchmarks
 # Two pytest workers, each with single-threaded XLA: on a 2-core machine this is ~1.35x faster than
 # one process whose XLA uses both cores (most test time is compilation, which is single-threaded).
-# LLVM's backend at optimisation level 1 instead of XLA's default 3: compiles 10-15 % faster (one
-# 60-step gradient program timed at each level).
-# (Level 0 compiles ~30 % faster but is not used: in one full run it aborted one compile, and it
-# gives a non-finite gradient in tests/test_stress.py that levels 1 and 3 do not.) Every token of
-# XLA_FLAGS must be a `--xla_...` flag: XLA silently stops reading at the first one that is not.
-export XLA_FLAGS="${XLA_FLAGS:-} --xla_cpu_multi_thread_eigen=false --xla_backend_optimization_level=1"
+# Two settings make compilation cheaper (they change how fused kernels are generated, not what
+# is computed; jshadow's own runs keep XLA's defaults):
+# - LLVM's backend at optimisation level 1 instead of XLA's default 3: compiles 10-15 % faster (one
+#   60-step gradient program timed at each level). Level 0 compiles ~30 % faster but is not used:
+#   in one of three full runs it aborted one compile (not reproduced alone).
+# - XLA:CPU's elemental kernel emitters instead of its newer MLIR fusion emitters
+#   (--xla_cpu_use_fusion_emitters=false): two of the slowest gradient tests (edge-scan node
+#   compaction and transposed jvp, no compilation cache) took 56-62 s against 73-76 s with them;
+#   the full suite, 822 tests, 14:49 (20:22 for 809 tests without this flag, the day before).
+# Every token of XLA_FLAGS must be a `--xla_...` flag: XLA silently stops reading at the first one
+# that is not.
+export XLA_FLAGS="${XLA_FLAGS:-} --xla_cpu_multi_thread_eigen=false --xla_backend_optimization_level=1 --xla_cpu_use_fusion_emitters=false"
 .venv/bin/python -m pytest -q -n "${PYTEST_WORKERS:-2}" "$@"
