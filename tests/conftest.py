@@ -76,6 +76,7 @@ def subprocess_env(*, xla_flags: str = "") -> dict[str, str]:
 # alphabetical order, several of them came last).
 _SLOW_FIRST = (
     "test_sharding",
+    "test_codegen",
     "test_stress",
     "test_edgescan_grad",
     "test_self_visibility",
