@@ -326,16 +326,15 @@ print("non-finite seeds:", [s for s, u in enumerate(us) if not np.isfinite(np.as
 
 
 def test_bounding_sphere_gradient_is_finite_when_xla_recomputes_the_extremes_differently():
-    # jnp.max's derivative divides by the number of elements equal to the maximum; fused and
-    # recomputed with different rounding (XLA:CPU backend level 0 contracts c + 0.6·u differently in
-    # the two kernels) none is equal, and the gradient was inf/NaN for 18 of these 20 point sets
-    # (and for a vertex of tests/test_stress.py). bounding_sphere gathers at the argmax instead.
+    # jnp.max's derivative divides by the number of elements equal to the maximum. At XLA:CPU's
+    # backend level 0 (with XLA's default kernel emitters) the kernel that takes the maximum and
+    # the one that compares with it round c + 0.6·u differently, none is equal, and the gradient
+    # was inf/NaN for 18 of these 20 point sets (and for a vertex of tests/test_stress.py).
+    # bounding_sphere gathers at the argmax instead. The child's flags replace the suite's.
+    env = subprocess_env()
+    env["XLA_FLAGS"] = "--xla_cpu_multi_thread_eigen=false --xla_backend_optimization_level=0"
     p = subprocess.run(
-        [sys.executable, "-c", _FUSED_MAX_SCRIPT],
-        capture_output=True,
-        text=True,
-        timeout=300,
-        env=subprocess_env(xla_flags="--xla_backend_optimization_level=0"),
+        [sys.executable, "-c", _FUSED_MAX_SCRIPT], capture_output=True, text=True, timeout=300, env=env
     )
     assert p.returncode == 0, p.stderr
     assert "non-finite seeds: []" in p.stdout, p.stdout
