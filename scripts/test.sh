@@ -17,7 +17,7 @@ if [ ! -x .venv/bin/python ]; then "$PY" -m venv .venv; fi
 # - XLA:CPU's elemental kernel emitters instead of its newer MLIR fusion emitters
 #   (--xla_cpu_use_fusion_emitters=false): two of the slowest gradient tests (edge-scan node
 #   compaction and transposed jvp, no compilation cache) took 56-62 s against 73-76 s with them;
-#   the full suite, 822 tests, 14:49 (20:22 for 809 tests without this flag, the day before).
+#   the full suite, 822 tests, 14:49 (809 tests without this flag: 20:22, earlier the same day).
 # Every token of XLA_FLAGS must be a `--xla_...` flag: XLA silently stops reading at the first one
 # that is not.
 export XLA_FLAGS="${XLA_FLAGS:-} --xla_cpu_multi_thread_eigen=false --xla_backend_optimization_level=1 --xla_cpu_use_fusion_emitters=false"
