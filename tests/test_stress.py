@@ -235,6 +235,14 @@ def _random_unit(rng, collapse):
     return unit
 
 
+def case_args(seed, amount, light, collapse):
+    """float32 arguments of :func:`_render_and_grads` for one random-mesh case (also used by
+    tests/test_codegen.py, in this process and in a child process)."""
+    unit = _random_unit(np.random.default_rng(seed), collapse)
+    extra = _extra_receivers(OCC_CENTER + OCC_RADIUS * unit)
+    return [jnp.asarray(x, jnp.float32) for x in (unit, amount, LIGHTS[light], extra, EYE, np.zeros(3))]
+
+
 @given(
     seed=st.integers(0, 2**31 - 1),
     amount=st.floats(-2.0, 2.0),
@@ -242,10 +250,7 @@ def _random_unit(rng, collapse):
     collapse=st.booleans(),
 )
 def test_random_meshes_twists_and_lights_give_finite_values_and_gradients(seed, amount, light, collapse):
-    unit = _random_unit(np.random.default_rng(seed), collapse)
-    extra = _extra_receivers(OCC_CENTER + OCC_RADIUS * unit)
-    args = [jnp.asarray(x, jnp.float32) for x in (unit, amount, LIGHTS[light], extra, EYE, np.zeros(3))]
-    e, grads = _render_and_grads(*args)
+    e, grads = _render_and_grads(*case_args(seed, amount, light, collapse))
     assert _all_finite(e) and _all_finite(grads), (light, collapse)
     assert np.all(np.asarray(e) >= -1e-3 * float(np.abs(e).max()))  # irradiance is not negative
     assert np.abs(np.asarray(grads[0])).max() > 0  # the vertices do move the shadows
