@@ -106,7 +106,9 @@ def _check_flat_call(rend, config_file, res):
     equal scene reuses the compiled function; an unhashable static leaf falls back to the latter."""
     scene = rend.scene
     t = jnp.asarray(frame_time(1, scene.n_frames), scene.receivers.points.dtype)
-    ref = runner._place_and_shade(scene, rend._bsvs(t), t, rend._lighting, True, rend._shared_normal)
+    ref = runner._with_receivers(
+        scene, runner._place_and_shade(scene, rend._bsvs(t), t, rend._lighting, True, rend._shared_normal)
+    )
     _assert_identical(_arrays(res, KEYS), dict(zip(KEYS, (np.asarray(x) for x in ref), strict=True)), KEYS)
     again = Renderer(jshadow.build_scene(jshadow.load_config(config_file)))
     again.frame(0)
