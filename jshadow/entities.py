@@ -18,7 +18,9 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float, Int
 
 from ._numerics import safe_acos, safe_atan2
@@ -220,6 +222,9 @@ class MeshOccluder(eqx.Module):
     deform: Callable | None = None  # an eqx.Module (x: (V,3), t: scalar) -> (V,3), or None
     name: str = eqx.field(static=True, default="mesh")
 
+    def __check_init__(self):
+        _remember_rest_shape(self)
+
     @property
     def deforms(self) -> bool:
         return self.deform is not None
@@ -227,6 +232,37 @@ class MeshOccluder(eqx.Module):
     def vertices(self, t: Float[Array, ""] | float = 0.0) -> Float[Array, "V 3"]:
         x = self.unit_vertices if self.deform is None else self.deform(self.unit_vertices, t)
         return self.center + self.radius * x
+
+
+_REST_SHAPES: dict = {}  # faces_key(faces) -> the last concrete MeshOccluder constructed with them
+
+
+def faces_key(faces) -> tuple:
+    """A hashable key of a concrete face array (its shape and bytes)."""
+    f = np.ascontiguousarray(np.asarray(faces), np.int64)
+    return (f.shape, hash(f.tobytes()))
+
+
+def _remember_rest_shape(occ: MeshOccluder) -> None:
+    """Keep the last :class:`MeshOccluder` constructed with concrete arrays per topology.
+
+    Sizes that the BSV's edge-scan and its derivative need are measured on concrete poses
+    (``jshadow.scene``); a function whose rest pose is traced (fitting per-vertex offsets, a user's
+    ``jax.grad`` with respect to ``unit_vertices``) cannot measure them and reads them from a
+    concrete shape of the same topology. Remembering the occluder when it is built (``build_scene``
+    or by hand) makes such a function fast on its first call too, without a render first (the
+    airplane's frame gradient: about 2 s with generous default sizes, 0.15 s with measured ones).
+    """
+    if any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(occ)):
+        return  # built inside a trace: nothing to measure on
+    if len(_REST_SHAPES) >= 16:  # topologies are few per process; bound the references anyway
+        _REST_SHAPES.clear()
+    _REST_SHAPES[faces_key(occ.faces)] = occ
+
+
+def remembered_rest_shape(faces) -> MeshOccluder | None:
+    """The last concrete :class:`MeshOccluder` constructed with ``faces`` (concrete), or None."""
+    return _REST_SHAPES.get(faces_key(faces))
 
 
 class SphereLight(eqx.Module):

@@ -32,7 +32,14 @@ from jaxtyping import Array, Bool, Float, Int
 
 from . import sh
 from ._numerics import safe_norm, safe_normalize
-from .entities import MeshOccluder, Scene, SphereOccluder, frame_time, receivers_at_time
+from .entities import (
+    MeshOccluder,
+    Scene,
+    SphereOccluder,
+    frame_time,
+    receivers_at_time,
+    remembered_rest_shape,
+)
 from .envlights import EnvironmentLights, split_environment
 from .field import bsv_visibility_and_distance, sphere_light_blocked, sphere_visibility_sh, unit_visibility
 from .geometry import bounding_sphere
@@ -262,17 +269,24 @@ def _cached_slots(kind: str, occ: MeshOccluder, faces: np.ndarray, m, measure, m
     cached per rest shape.
 
     Each topology and configuration also keeps ``merge`` (the largest) of every shape measured with
-    it, which a call whose rest pose is traced (fitting per-vertex offsets) reuses; ``none`` when no
-    concrete pose of this topology has been seen. With ``lazy``, a shape not measured yet gives a
-    zero-argument function that measures (eagerly, outside any trace) when called, for sizes that
-    only a derivative needs; a traced rest pose of a topology whose concrete shape was seen but not
-    measured gets that shape's function.
+    it, which a call whose rest pose is traced (fitting per-vertex offsets) reuses. A traced rest
+    pose of a topology not measured yet is measured on the last concrete occluder constructed with
+    the same faces (:func:`jshadow.entities.remembered_rest_shape`, e.g. ``build_scene``'s), so a
+    user's first ``jax.grad`` with respect to the vertices needs no render before it; ``none`` when
+    there is none. With ``lazy``, a shape not measured yet gives a zero-argument function that
+    measures (eagerly, outside any trace) when called, for sizes that only a derivative needs; a
+    traced rest pose of a topology whose concrete shape was seen but not measured gets that shape's
+    function.
     """
     topo = (kind, faces.shape, hash(faces.tobytes()), m.bsv_grid, m.directions, m.shell)
     unit = _concrete(occ.unit_vertices)
     if unit is None:
         if lazy and topo not in _SLOTS and topo in _PENDING:
             return _PENDING[topo]
+        if topo not in _SLOTS:  # measure on the concrete shape built last with these faces, if any
+            seen = remembered_rest_shape(faces)
+            if seen is not None and _concrete(seen.unit_vertices) is not None:
+                return _cached_slots(kind, seen, faces, m, measure, merge, none, lazy=lazy)
         return _SLOTS.get(topo, none)
     key = (*topo, hash(unit.tobytes()))
     if key in _SLOTS:

@@ -218,3 +218,41 @@ def test_traced_rest_pose_reuses_the_slot_sizes_measured_on_a_concrete_one():
     assert lazy_seen == [pending]
     sizes = pending()
     assert len(sizes) == 6 and sizes == _image_grad_slots(occ, faces, other)
+
+
+def test_a_traced_rest_pose_measures_its_sizes_on_the_occluder_built_before_the_trace():
+    # A user's first jax.grad with respect to unit_vertices, with no render before it: the
+    # occluder built concretely (as build_scene builds it) is remembered per topology, and a traced
+    # rest pose of that topology is measured on it, not given generous defaults (the airplane's
+    # frame gradient: 2.1 s -> 0.17 s). Faces in another order: a topology no other test has seen.
+    from jshadow.scene import _edgescan_slots, _image_grad_slots
+
+    faces = jnp.asarray(np.roll(np.asarray(_ICO.faces), 7, axis=0), jnp.int32)
+    occ = scene_with(StretchY(jnp.float32(0.2)), faces=faces).occluders[0]
+    method = Method(bsv_grid=(6, 9), directions=(16, 16), bsv_gradient="image")
+    seen = []
+
+    @jax.jit
+    def probe(u):
+        o = eqx.tree_at(lambda o: o.unit_vertices, occ, u)
+        seen.append(
+            (
+                _edgescan_slots(o, np.asarray(faces), method),
+                _image_grad_slots(o, np.asarray(faces), method, lazy=True),
+            )
+        )
+        return u
+
+    probe(occ.unit_vertices + 0.01)
+    ((forward, pending),) = seen
+    assert forward is not None and callable(pending)
+    # the sizes of the concrete occluder's poses (rest and five of its animation), measured now
+    assert forward == _edgescan_slots(occ, np.asarray(faces), method)
+    assert pending() == _image_grad_slots(occ, np.asarray(faces), method)
+
+    # an occluder built inside a trace is not remembered (nothing concrete to measure on)
+    other = jnp.asarray(np.roll(np.asarray(_ICO.faces), 11, axis=0), jnp.int32)
+    jax.jit(lambda u: MeshOccluder(u, other, jnp.zeros(3), jnp.float32(1.0)).unit_vertices)(UNIT)
+    from jshadow.entities import remembered_rest_shape
+
+    assert remembered_rest_shape(other) is None and remembered_rest_shape(faces) is occ
