@@ -213,6 +213,9 @@ class MeshOccluder(eqx.Module):
     ``unit_vertices`` is the rest pose normalised so that its bounding sphere (AABB centre, radius to
     the farthest vertex) is the unit sphere at the origin. The world-space vertices at time t are
     ``center + radius · deform(unit_vertices, t)``; ``deform`` is ``None`` for a rigid mesh.
+
+    Constructing one with concrete arrays remembers it per topology (:func:`remembered_rest_shape`):
+    a later trace of the same faces with a traced rest pose measures its edge-scan sizes on it.
     """
 
     unit_vertices: Float[Array, "V 3"]
