@@ -39,6 +39,7 @@ __all__ = [
     "sky_radiance",
     "receivers_at",
     "receivers_at_time",
+    "remembered_rest_shape",
 ]
 
 
@@ -237,10 +238,10 @@ class MeshOccluder(eqx.Module):
         return self.center + self.radius * x
 
 
-_REST_SHAPES: dict = {}  # faces_key(faces) -> the last concrete MeshOccluder constructed with them
+_REST_SHAPES: dict = {}  # _faces_key(faces) -> the last concrete MeshOccluder constructed with them
 
 
-def faces_key(faces) -> tuple:
+def _faces_key(faces) -> tuple:
     """A hashable key of a concrete face array (its shape and bytes)."""
     f = np.ascontiguousarray(np.asarray(faces), np.int64)
     return (f.shape, hash(f.tobytes()))
@@ -254,18 +255,19 @@ def _remember_rest_shape(occ: MeshOccluder) -> None:
     ``jax.grad`` with respect to ``unit_vertices``) cannot measure them and reads them from a
     concrete shape of the same topology. Remembering the occluder when it is built (``build_scene``
     or by hand) makes such a function fast on its first call too, without a render first (the
-    airplane's frame gradient: about 2 s with generous default sizes, 0.15 s with measured ones).
+    airplane's frame gradient: 1.6 s with generous default sizes, 0.16 s with measured ones;
+    ``benchmarks/bench_first_grad.py``).
     """
     if any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(occ)):
         return  # built inside a trace: nothing to measure on
     if len(_REST_SHAPES) >= 16:  # topologies are few per process; bound the references anyway
         _REST_SHAPES.clear()
-    _REST_SHAPES[faces_key(occ.faces)] = occ
+    _REST_SHAPES[_faces_key(occ.faces)] = occ
 
 
 def remembered_rest_shape(faces) -> MeshOccluder | None:
     """The last concrete :class:`MeshOccluder` constructed with ``faces`` (concrete), or None."""
-    return _REST_SHAPES.get(faces_key(faces))
+    return _REST_SHAPES.get(_faces_key(faces))
 
 
 class SphereLight(eqx.Module):

@@ -129,9 +129,9 @@ def _place_and_shade_frame(scene, bsvs, t, lighting, analytic_spheres, shared_no
     pieces of the split path are, so that both compile the same field and combination).
 
     Returns ``(points, normals, e, rad)``; ``points`` and ``normals`` are None where they are the
-    scene's own receiver arrays (no occluder's vertices among them): an output that is an input
-    is copied by XLA, which cost 60–80 µs per 16384-receiver frame (:func:`_with_receivers` puts
-    them back)."""
+    scene's own receiver arrays (no occluder's vertices among them): XLA copies an output that is
+    an input (two copy kernels per frame in a profile; no change measurable in the frame's time,
+    BENCHMARKS.md). :func:`_with_receivers` puts them back."""
     points, normals = receivers_at_time(scene, t)
     light = _without_receivers(scene)
     e, rad = _shade_piece(
