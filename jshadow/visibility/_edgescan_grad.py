@@ -103,7 +103,9 @@ __all__ = ["bsv_mesh_edgescan_diff", "edgescan_grad_slots"]
 
 _GRAD_OVERFLOW = (
     "edge-scan gradient slots overflowed: pass a larger grad_slots (see edgescan_grad_slots); "
-    "silhouette edges would be missing from the derivative"
+    "silhouette edges would be missing from the derivative. Through jshadow.render / render_at, "
+    "whose sizes are measured on concrete poses of the same faces: differentiate once at a concrete "
+    "pose as deformed as the traced ones (its sizes are measured and the largest kept)"
 )
 
 
