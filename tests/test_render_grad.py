@@ -256,3 +256,30 @@ def test_a_traced_rest_pose_measures_its_sizes_on_the_occluder_built_before_the_
     from jshadow.entities import remembered_rest_shape
 
     assert remembered_rest_shape(other) is None and remembered_rest_shape(faces) is occ
+
+
+def test_sizes_of_a_more_deformed_concrete_pose_are_merged_into_the_traced_ones():
+    # What the edge-scan gradient's overflow message tells a render_at user: differentiating at a
+    # concrete pose as deformed as the traced ones measures its sizes, and a traced rest pose of
+    # the topology then gets the largest of every shape measured (element by element).
+    from jshadow.scene import _image_grad_slots
+
+    faces = jnp.asarray(np.roll(np.asarray(_ICO.faces), 13, axis=0), jnp.int32)  # a fresh topology
+    f_np = np.asarray(faces)
+    method = Method(bsv_grid=(6, 9), directions=(16, 16), bsv_gradient="image")
+    a = scene_with(StretchY(jnp.float32(0.1)), faces=faces).occluders[0]
+    stretched = UNIT * jnp.asarray([1.0, 2.5, 0.4], jnp.float32)
+    b = MeshOccluder(stretched, faces, a.center, a.radius, StretchY(jnp.float32(0.1)))
+    sizes_a = _image_grad_slots(a, f_np, method, lazy=True)()  # as a derivative calls it
+    sizes_b = _image_grad_slots(b, f_np, method, lazy=True)()
+    assert sizes_a != sizes_b  # the two shapes need different sizes
+    seen = []
+
+    @jax.jit
+    def probe(u):
+        o = eqx.tree_at(lambda o: o.unit_vertices, a, u)
+        seen.append(_image_grad_slots(o, f_np, method, lazy=True))
+        return u
+
+    probe(a.unit_vertices)
+    assert seen == [tuple(max(x, y) for x, y in zip(sizes_a, sizes_b, strict=True))]
