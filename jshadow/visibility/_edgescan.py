@@ -734,6 +734,64 @@ def bsv_mesh_edgescan(
     return BSV(coeffs, center, radius, shell * radius)
 
 
+def bsv_mesh_edgescan_flagged(
+    vertices: Float[ArrayLike, "V 3"],
+    faces: Int[ArrayLike, "F 3"],
+    n: int,
+    grid: tuple[int, int],
+    directions: tuple[int, int],
+    shell: float,
+    *,
+    slots: tuple[int, int, int, int],
+) -> tuple[BSV, Bool[Array, ""]]:
+    """:func:`bsv_mesh_edgescan` with fixed ``slots`` that reports an overflow instead of acting on it.
+
+    For one compiled call that computes the vertices and their BSV together (the renderer's per-frame
+    BSV, with the slots of :func:`edgescan_current_slots`): returns the BSV and the overflow flag.
+    Where the flag is True the coefficients are wrong and the caller must recompute, e.g. with
+    :func:`bsv_mesh_edgescan` on concrete vertices, which grows the slots for later calls. ``faces``
+    must be concrete (a NumPy array closed over, under ``jit``). Concrete vertices repair an overflow
+    themselves (the flag is then False).
+    """
+    if not (isinstance(n, int | np.integer) and n >= 1):
+        raise ValueError(f"n (number of SH bands) must be a positive int, got {n!r}")
+    vertices, faces, table, grid, directions, shell, slots = _resolve(
+        vertices, faces, grid, directions, shell, None, slots
+    )
+    basis_w = _basis_weights(directions, shell, int(n), vertices.dtype)
+
+    def finish(diff):
+        return _stage_sh(diff, basis_w, n=int(n), grid=grid)
+
+    coeffs, overflow, center, radius = _compute(
+        vertices, faces, table, grid, directions, shell, slots, finish, check=False
+    )
+    return BSV(coeffs, center, radius, shell * radius), jnp.asarray(overflow)
+
+
+def edgescan_current_slots(
+    faces: Int[np.ndarray, "F 3"],
+    num_vertices: int,
+    dtype,
+    grid: tuple[int, int],
+    directions: tuple[int, int],
+    shell: float,
+) -> tuple[int, int, int, int] | None:
+    """The slots a :func:`bsv_mesh_edgescan` call on concrete vertices of this topology and
+    configuration (``slots=None``) starts from now: measured on the first pose it saw, grown after any
+    overflow since; None before the first such call."""
+    grid, directions = _check_pair(grid, "grid"), _check_pair(directions, "directions")
+    shell = _check_shell(shell)
+    faces = np.asarray(faces)
+    key = (_topology_key(faces, num_vertices), jnp.dtype(dtype).name, grid, directions, shell)
+    if key not in _REST_SLOTS:
+        return None
+    table = _cached_edge_table(faces, num_vertices)
+    slots = _check_slots(_REST_SLOTS[key], int(table.a.shape[0]) * grid[0] * grid[1], directions[1])
+    grown = (table.num_edges, table.num_faces, table.num_vertices, grid, directions, shell, slots)
+    return _GROWN.get(grown, slots)
+
+
 def bsv_and_occlusion_edgescan(
     vertices: Float[ArrayLike, "V 3"],
     faces: Int[ArrayLike, "F 3"],
