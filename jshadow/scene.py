@@ -61,11 +61,10 @@ from .visibility import (
     bsv_mesh_diff,
     bsv_mesh_edgescan,
     bsv_mesh_edgescan_diff,
-    bsv_mesh_edgescan_flagged,
+    bsv_mesh_edgescan_of,
     bsv_silhouette_counts,
     bsv_sphere,
     bsv_with_occlusion_images,
-    edgescan_current_slots,
     edgescan_grad_slots,
     edgescan_slots,
     image_fan_visibility_components,
@@ -171,16 +170,18 @@ def mesh_bsv(occ: MeshOccluder, t, scene: Scene, differentiable: bool = True) ->
     ``differentiable=False`` when no derivative is wanted: the sampler then runs directly, outside
     the custom-derivative wrapper (which traces its primal and so loses the edge-scan's staging), and
     for a concrete occluder sampled by the edge-scan the deformation and the BSV are one compiled call
-    (:func:`_fused_edgescan_bsv`).
+    (:func:`jshadow.visibility.bsv_mesh_edgescan_of`; instead of several dispatches and eager
+    operations: on two CPU cores the BSV stage took 0.88–0.94× the time, whole frames 0.92–0.95×:
+    airplane, egg, animated bunny, in-process A/B, alternating frames).
     """
     m = scene.method
     t = jnp.asarray(t, occ.unit_vertices.dtype)  # an array: one compile for all t
     kw = dict(n=m.field_bands, grid=m.bsv_grid, directions=m.directions, shell=m.shell)
     faces = _concrete(occ.faces)
-    if not differentiable:
-        fused = _fused_edgescan_bsv(occ, t, faces, m, kw)
-        if fused is not None:
-            return fused
+    traced = any(isinstance(x, jax.core.Tracer) for x in (occ.unit_vertices, t))
+    if not differentiable and faces is not None and not traced and _uses_edgescan(m, faces):
+        shape = occ.unit_vertices.shape[0], occ.unit_vertices.dtype
+        return bsv_mesh_edgescan_of(_deformed, (occ, t), faces, *shape, **kw)
     v = _vertices_at(occ, t)
     if not differentiable:
         return bsv_mesh(v, occ.faces, method=m.bsv_method, **kw)
@@ -189,42 +190,9 @@ def mesh_bsv(occ: MeshOccluder, t, scene: Scene, differentiable: bool = True) ->
     return BSV(coeffs=coeffs, center=center, radius=radius, shell_radius=m.shell * radius)
 
 
-_FUSED: dict = {}  # topology -> the compiled "vertices at t, then their edge-scan BSV" of that topology
-
-
-def _fused_edgescan_bsv(occ: MeshOccluder, t, faces: np.ndarray | None, m, kw) -> BSV | None:
-    """The deformed vertices at t and their edge-scan BSV in one compiled call, or None where the
-    caller's two-step path (:func:`_vertices_at`, then :func:`jshadow.visibility.bsv_mesh`) must run:
-    no edge-scan, anything traced, no slots measured yet for this topology (that path measures them)
-    or an overflow of the slots (that path repairs it and grows them for later frames).
-
-    Same values as the two-step path, with the slots it would use
-    (:func:`jshadow.visibility.edgescan_current_slots`). One call instead of several dispatches and
-    eager operations: on two CPU cores the BSV stage took 0.88–0.94× the time, whole frames
-    0.92–0.95× (airplane, egg, animated bunny; in-process, alternating frames).
-    """
-    traced = any(isinstance(x, jax.core.Tracer) for x in (occ.unit_vertices, t))
-    if faces is None or traced or not _uses_edgescan(m, faces):
-        return None
-    slots = edgescan_current_slots(
-        faces, occ.unit_vertices.shape[0], occ.unit_vertices.dtype, m.bsv_grid, m.directions, m.shell
-    )
-    if slots is None:
-        return None
-    key = (faces.shape, hash(faces.tobytes()))
-    if key not in _FUSED:
-        if len(_FUSED) >= 16:
-            _FUSED.clear()
-
-        @eqx.filter_jit
-        def run(occ, t, slots, kw):
-            return bsv_mesh_edgescan_flagged(occ.vertices(t), faces, slots=slots, **kw)
-
-        _FUSED[key] = run
-    bsv, overflow = _FUSED[key](occ, t, slots, kw)
-    if bool(overflow):
-        return None
-    return bsv
+def _deformed(occ: MeshOccluder, t) -> Float[Array, "V 3"]:
+    """World vertices at time t (the function :func:`mesh_bsv` compiles together with the BSV)."""
+    return occ.vertices(t)
 
 
 def _differentiable_coeffs(occ: MeshOccluder, v, faces: np.ndarray | None, m, kw):

@@ -156,52 +156,49 @@ def test_renderer_reuses_bsv_of_rigid_occluders():
 
 def test_renderer_bsv_of_a_deforming_mesh_is_one_call_equal_to_the_two_step_path():
     # the renderer's per-frame BSV of a deforming mesh computes the vertices and their edge-scan BSV
-    # in one compiled call; it must equal the vertices-then-bsv_mesh path bit for bit, also when its
-    # slots overflow (then the two-step path repairs and grows them, and later frames use the grown ones)
+    # in one compiled call (bsv_mesh_edgescan_of); it must equal the vertices-then-bsv_mesh path bit
+    # for bit with the same slots: measured on the first pose, grown after an overflow (and shared
+    # with that path), without compiling the two-step path at all
     from jshadow.geometry import Twist
-    from jshadow.scene import _fused_edgescan_bsv, _vertices_at, mesh_bsv
+    from jshadow.scene import _vertices_at, mesh_bsv
     from jshadow.visibility import _edgescan as es
-    from jshadow.visibility import bsv_mesh, edgescan_current_slots
+    from jshadow.visibility import bsv_mesh
 
     occ = icosphere_occluder((0, 1.2, 0), 0.5, Twist(0.0, 2.5), subdiv=2)
     m = Method(bsv_grid=(6, 10), directions=(16, 16))
     scene = Scene(m, plane(n=3), (occ,), (), Environment(f32(1, 1, 1)), n_frames=4)
     faces = np.asarray(occ.faces)
     kw = dict(n=m.field_bands, grid=m.bsv_grid, directions=m.directions, shell=m.shell)
-    args = (faces, occ.unit_vertices.shape[0], jnp.float32, m.bsv_grid, m.directions, m.shell)
+    topology = es._topology_key(faces, occ.unit_vertices.shape[0])
 
     def two_step(t):
         return bsv_mesh(_vertices_at(occ, jnp.float32(t)), faces, method=m.bsv_method, **kw).coeffs
 
-    for key in [k for k in es._REST_SLOTS if k[0] == es._topology_key(faces, faces.max() + 1)]:
-        del es._REST_SLOTS[key]  # this topology unseen: the first frame takes the two-step path
-    assert edgescan_current_slots(*args) is None
-    assert _fused_edgescan_bsv(occ, jnp.float32(0.0), faces, m, kw) is None
-    first = mesh_bsv(occ, 0.0, scene, differentiable=False).coeffs  # measures the slots
-    np.testing.assert_array_equal(np.asarray(first), np.asarray(two_step(0.0)))
-    slots = edgescan_current_slots(*args)
-    assert slots is not None
-    for t in (0.0, 0.7):  # 0.7: twisted beyond the measured pose (the renderer grows the slots if needed)
-        np.testing.assert_array_equal(
-            np.asarray(mesh_bsv(occ, t, scene, differentiable=False).coeffs), np.asarray(two_step(t))
+    def rest_key():
+        return next(
+            k for k in es._REST_SLOTS if k[0] == topology and k[2:] == (m.bsv_grid, m.directions, m.shell)
         )
-        fused = _fused_edgescan_bsv(occ, jnp.float32(t), faces, m, kw)
-        assert fused is not None
-        np.testing.assert_array_equal(np.asarray(fused.coeffs), np.asarray(two_step(t)))
 
-    # slots far too small: the one-call result is discarded, the two-step path's is returned and the
-    # grown slots are what the next frame's call starts from
-    (key,) = [k for k in es._REST_SLOTS if k[0] == es._topology_key(faces, faces.max() + 1)]
-    es._REST_SLOTS[key] = (1, 1, 1, 1)
-    assert _fused_edgescan_bsv(occ, jnp.float32(1.0), faces, m, kw) is None
+    for k in [k for k in es._REST_SLOTS if k[0] == topology]:
+        del es._REST_SLOTS[k]  # this topology unseen: the first call measures its slots
+    compiles = es._run_jit._cache_size()
+    got = {t: mesh_bsv(occ, t, scene, differentiable=False) for t in (0.0, 0.7)}
+    assert es._run_jit._cache_size() == compiles  # the two-step path's edge-scan was never compiled
+    measured = es._REST_SLOTS[rest_key()]
+    for t, bsv in got.items():  # 0.7: twisted beyond the measured pose (grown slots if it overflows)
+        np.testing.assert_array_equal(np.asarray(bsv.coeffs), np.asarray(two_step(t)))
+
+    # slots far too small: the call overflows, grows them, reruns, and the two-step path starts from
+    # the grown slots too
+    es._REST_SLOTS[rest_key()] = (1, 1, 1, 1)
     repaired = mesh_bsv(occ, 1.0, scene, differentiable=False).coeffs
     np.testing.assert_array_equal(np.asarray(repaired), np.asarray(two_step(1.0)))
-    grown = edgescan_current_slots(*args)
-    assert grown != (1, 1, 1, 1)
-    again = _fused_edgescan_bsv(occ, jnp.float32(1.0), faces, m, kw)
-    assert again is not None
-    np.testing.assert_array_equal(np.asarray(again.coeffs), np.asarray(repaired))
-    es._REST_SLOTS[key] = slots
+    es._REST_SLOTS[rest_key()] = measured
+    table = es._cached_edge_table(faces, occ.unit_vertices.shape[0])
+    tiny = es._check_slots((1, 1, 1, 1), table.a.shape[0] * 6 * 10, 16)
+    size = (faces.shape[0], occ.unit_vertices.shape[0], m.bsv_grid, m.directions, m.shell, tiny)
+    grown = [v for k, v in es._GROWN.items() if k[1:] == size]
+    assert len(grown) == 1 and grown[0] != tiny and grown[0][0] > tiny[0]
 
 
 def test_outputs_finite_with_receivers_on_and_inside_occluders():

@@ -30,9 +30,8 @@ from ._directions import cap_sh_projection as cap_sh_projection
 from ._directions import far_hemisphere_sh_projection as far_hemisphere_sh_projection
 from ._directions import hemisphere_directions as hemisphere_directions
 from ._edgescan import bsv_mesh_edgescan as bsv_mesh_edgescan
-from ._edgescan import bsv_mesh_edgescan_flagged as bsv_mesh_edgescan_flagged
+from ._edgescan import bsv_mesh_edgescan_of as bsv_mesh_edgescan_of
 from ._edgescan import edgescan_cone_directions as edgescan_cone_directions
-from ._edgescan import edgescan_current_slots as edgescan_current_slots
 from ._edgescan import edgescan_slots as edgescan_slots
 from ._edgescan_grad import bsv_mesh_edgescan_diff as bsv_mesh_edgescan_diff
 from ._edgescan_grad import edgescan_grad_slots as edgescan_grad_slots

@@ -622,7 +622,6 @@ def _compute(vertices, faces, table, grid, directions, shell, slots, finish=lamb
     if not traced:
         slots = _GROWN.get(key, slots)
     while True:
-        s, s2, s3, k = slots
         run = _run if traced else _run_jit  # one compiled call of staged conditionals (~25 % faster)
         diff, overflow, counts, center, radius = run(vertices, faces, table, grid, directions, shell, slots)
         if traced:
@@ -631,13 +630,17 @@ def _compute(vertices, faces, table, grid, directions, shell, slots, finish=lamb
         out = finish(diff)
         if not bool(overflow):
             return out, overflow, center, radius
-        need = [int(x) for x in np.asarray(counts)]
-        # the counts are exact for the slotted edges, so one retry suffices unless S itself overflowed
-        # (then the long-edge count is a lower bound and a second retry may follow)
-        grow = [max(x, math.ceil(1.25 * y)) for x, y in zip((s, s2, s3, k), need, strict=True)]
-        bigger = tuple(grow)
-        slots = _check_slots(bigger, cap, width)
+        slots = _grown(slots, counts, cap, width)
         _GROWN[key] = slots
+
+
+def _grown(slots, counts, cap, width):
+    """Slots after an overflow: each at least 1.25× the count it needed. The counts are exact for
+    the slotted edges, so one retry suffices unless S itself overflowed (then the long-edge count is
+    a lower bound and a second retry may follow)."""
+    need = [int(x) for x in np.asarray(counts)]
+    grow = [max(x, math.ceil(1.25 * y)) for x, y in zip(slots, need, strict=True)]
+    return _check_slots(tuple(grow), cap, width)
 
 
 def edgescan_occlusion(
@@ -734,62 +737,77 @@ def bsv_mesh_edgescan(
     return BSV(coeffs, center, radius, shell * radius)
 
 
-def bsv_mesh_edgescan_flagged(
-    vertices: Float[ArrayLike, "V 3"],
-    faces: Int[ArrayLike, "F 3"],
-    n: int,
-    grid: tuple[int, int],
-    directions: tuple[int, int],
-    shell: float,
-    *,
-    slots: tuple[int, int, int, int],
-) -> tuple[BSV, Bool[Array, ""]]:
-    """:func:`bsv_mesh_edgescan` with fixed ``slots`` that reports an overflow instead of acting on it.
-
-    For one compiled call that computes the vertices and their BSV together (the renderer's per-frame
-    BSV, with the slots of :func:`edgescan_current_slots`): returns the BSV and the overflow flag.
-    Where the flag is True the coefficients are wrong and the caller must recompute, e.g. with
-    :func:`bsv_mesh_edgescan` on concrete vertices, which grows the slots for later calls. ``faces``
-    must be concrete (a NumPy array closed over, under ``jit``). Concrete vertices repair an overflow
-    themselves (the flag is then False).
-    """
-    if not (isinstance(n, int | np.integer) and n >= 1):
-        raise ValueError(f"n (number of SH bands) must be a positive int, got {n!r}")
-    vertices, faces, table, grid, directions, shell, slots = _resolve(
-        vertices, faces, grid, directions, shell, None, slots
-    )
-    basis_w = _basis_weights(directions, shell, int(n), vertices.dtype)
-
-    def finish(diff):
-        return _stage_sh(diff, basis_w, n=int(n), grid=grid)
-
-    coeffs, overflow, center, radius = _compute(
-        vertices, faces, table, grid, directions, shell, slots, finish, check=False
-    )
-    return BSV(coeffs, center, radius, shell * radius), jnp.asarray(overflow)
+_OF: dict = {}  # (topology, dtype, grid, directions, shell, n) -> the compiled vertices-then-BSV call
 
 
-def edgescan_current_slots(
+def bsv_mesh_edgescan_of(
+    vertices_fn,
+    args: tuple,
     faces: Int[np.ndarray, "F 3"],
     num_vertices: int,
     dtype,
-    grid: tuple[int, int],
-    directions: tuple[int, int],
-    shell: float,
-) -> tuple[int, int, int, int] | None:
-    """The slots a :func:`bsv_mesh_edgescan` call on concrete vertices of this topology and
-    configuration (``slots=None``) starts from now: measured on the first pose it saw, grown after any
-    overflow since; None before the first such call."""
+    n: int = 4,
+    grid: tuple[int, int] = (12, 20),
+    directions: tuple[int, int] = (32, 32),
+    shell: float = 1.5,
+) -> BSV:
+    """:func:`bsv_mesh_edgescan` of the vertices ``vertices_fn(*args)``, computed together with them
+    in one compiled call (for a renderer's per-frame BSV of a deforming mesh).
+
+    Same values as ``bsv_mesh_edgescan(vertices_fn(*args), faces, n, grid, directions, shell)`` on
+    concrete vertices, with the same slots: measured on the first pose of this topology and
+    configuration (``vertices_fn`` then also runs once on its own), grown after an overflow, which
+    reruns the call with the larger slots (one compile per slot size, as there). Slots measured or
+    grown here are the ones :func:`bsv_mesh_edgescan` uses later, and the other way round.
+
+    Args:
+        vertices_fn: a jit-compatible function of ``args`` returning (V, 3) float vertices of
+            ``dtype``; the same function object is compiled once per slot size (it is a static
+            argument of the compiled call). args: concrete arrays and pytrees, traced in the call.
+        faces: (F, 3) concrete int array (closed, consistently wound, edge-manifold).
+        num_vertices: V. dtype: the vertices' float dtype.
+    """
+    if not (isinstance(n, int | np.integer) and n >= 1):
+        raise ValueError(f"n (number of SH bands) must be a positive int, got {n!r}")
     grid, directions = _check_pair(grid, "grid"), _check_pair(directions, "directions")
     shell = _check_shell(shell)
     faces = np.asarray(faces)
-    key = (_topology_key(faces, num_vertices), jnp.dtype(dtype).name, grid, directions, shell)
-    if key not in _REST_SLOTS:
-        return None
+    dtype = jnp.dtype(dtype)
+    key = (_topology_key(faces, num_vertices), dtype.name, grid, directions, shell)
+    if key not in _REST_SLOTS:  # measured on this first pose, as bsv_mesh_edgescan measures it
+        _resolve(vertices_fn(*args), faces, grid, directions, shell, None, None)
     table = _cached_edge_table(faces, num_vertices)
-    slots = _check_slots(_REST_SLOTS[key], int(table.a.shape[0]) * grid[0] * grid[1], directions[1])
-    grown = (table.num_edges, table.num_faces, table.num_vertices, grid, directions, shell, slots)
-    return _GROWN.get(grown, slots)
+    cap, width = int(table.a.shape[0]) * grid[0] * grid[1], directions[1]
+    slots = _check_slots(_REST_SLOTS[key], cap, width)
+    grown_key = (table.num_edges, table.num_faces, table.num_vertices, grid, directions, shell, slots)
+    slots = _GROWN.get(grown_key, slots)
+    run_key = (*key, int(n))
+    if run_key not in _OF:
+        if len(_OF) >= 16:
+            _OF.clear()
+        _OF[run_key] = _vertices_then_bsv(faces, _basis_weights(directions, shell, int(n), dtype), int(n))
+    run = _OF[run_key]
+    while True:
+        out = run(vertices_fn, args, table, grid, directions, shell, slots)
+        coeffs, overflow, counts, center, radius = out
+        if not bool(overflow):
+            return BSV(coeffs, center, radius, shell * radius)
+        slots = _grown(slots, counts, cap, width)
+        _GROWN[grown_key] = slots
+
+
+def _vertices_then_bsv(faces: np.ndarray, basis_w, n: int):
+    """The compiled call of :func:`bsv_mesh_edgescan_of` for one topology (``faces`` closed over:
+    concrete in the trace)."""
+
+    @eqx.filter_jit
+    def run(vertices_fn, args, table, grid, directions, shell, slots):
+        v = vertices_fn(*args)
+        f = jnp.asarray(faces, jnp.int32)
+        diff, overflow, counts, center, radius = _run(v, f, table, grid, directions, shell, slots)
+        return _stage_sh(diff, basis_w, n=n, grid=grid), overflow, counts, center, radius
+
+    return run
 
 
 def bsv_and_occlusion_edgescan(
