@@ -147,7 +147,8 @@ def test_node_visibility_is_the_winding_number_of_the_silhouette(monkeypatch):
     # the nodes of long lists read the rest of them: the same with every list read in one tier
     assert gs[4] > 0
     monkeypatch.setattr(_edgescan_grad, "_TIERS", (4 * gs[3], 32))
-    _, chi_one, _, _, _ = jax.jit(visible)(v, counts)
+    # (a new function: jax.jit(visible) would reuse its trace with the old tiers)
+    _, chi_one, _, _, _ = jax.jit(lambda v, c: visible(v, c))(v, counts)
     np.testing.assert_array_equal(np.asarray(chi_one)[:total], chi)
     # too small a list, window or tier raises the overflow flag (bsv_mesh_edgescan_diff raises on it);
     # the third tier is exercised with tiers of 4 entries
@@ -158,6 +159,36 @@ def test_node_visibility_is_the_winding_number_of_the_silhouette(monkeypatch):
         small = {**kw, "long_slots": (gs[4], gs[5]), key: value}
         flag = jax.jit(lambda v, c, small=small: _edgescan_grad._visible_nodes(v, fj, table, c, **small)[3])
         assert bool(flag(v, counts)), key
+
+
+def test_node_visibility_in_blocks_skips_only_padding(monkeypatch):
+    # the tiers of list reading run in blocks, and a block wholly past the live rows (the padding of
+    # the static sizes) is not computed: χ must be exactly the unsplit one, with blocks skipped
+    from jshadow.visibility import _edgescan_grad
+    from jshadow.visibility._edgescan import _prepare
+
+    m = load_mesh(ASSETS / "bunny_small.obj")
+    x, f = np.asarray(m.vertices, np.float32), np.asarray(m.faces, np.int32)
+    grid, res = (3, 4), (32, 32)
+    gs = _edgescan_grad.edgescan_grad_slots(x, f, grid, SHELL, directions=res)
+    v, fj, table = _prepare(x, f, None)
+    counts = _edgescan_grad._counts_of(v, fj, table, grid, res, SHELL)
+    kw = dict(grid=grid, directions=res, shell=SHELL, slots=gs[0], nodes=2, piece_slots=gs[2], window=gs[3])
+
+    outs = {}
+    for blocks in (1, 4, 7):  # a new function each time: jax.jit would reuse the first trace
+
+        def visible(v, counts):
+            return _edgescan_grad._visible_nodes(v, fj, table, counts, **kw, long_slots=(gs[4], gs[5]))
+
+        monkeypatch.setattr(_edgescan_grad, "_live_blocks", lambda rows, b=blocks: b)
+        outs[blocks] = jax.jit(visible)(v, counts)
+    total = int(outs[1][2])
+    assert 2 * total < 0.75 * 2 * gs[0]  # the last of 4 blocks of tier 1 holds padding only: skipped
+    assert int(outs[1][4][1][0]) < 0.75 * gs[4]  # likewise the second tier's last block
+    for blocks in (4, 7):
+        np.testing.assert_array_equal(np.asarray(outs[blocks][1]), np.asarray(outs[1][1]))
+        assert int(outs[blocks][2]) == total and not bool(outs[blocks][3])
 
 
 @pytest.mark.usefixtures("x64")
