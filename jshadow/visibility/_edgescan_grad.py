@@ -39,7 +39,8 @@ Layout of the computation (the tangent is linear, so JAX transposes it for rever
    entries, the bunny: 2.1 per pair at 32²), sorted by (view, pixel) as one packed int32 key;
 3. per Gauss–Legendre node t_k its pixel's list, read in tiers (16 entries for every node; the
    next 32 and then the rest, up to the static ``window``, for the nodes of longer lists,
-   compacted), the crossing test and χ; the visible nodes (the bunny: 20 % of its silhouette
+   compacted), the crossing test and χ (on XLA:CPU in blocks, of which those holding only the
+   padding of the static sizes are skipped); the visible nodes (the bunny: 20 % of its silhouette
    nodes) are compacted into ``N`` static node slots;
 4. per node the scalar ``s = W_k χ_k w (α_k n₃·δq_a + β_k n₃·δq_b)`` with primal weights, splatted
    bilinearly onto the (N_y + 1) × (N_x + 1) pixel-corner grid of its view;
