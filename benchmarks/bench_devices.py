@@ -9,7 +9,7 @@ Usage::
 :class:`jshadow.Renderer` on JAX's default device, under each ``--precision`` (JAX's
 ``default_matmul_precision``: on GPUs ``default`` lets float32 matrix products run as TF32, whose
 mantissa has 10 bits; ``highest`` keeps full float32), and the vertex gradient of
-``L(δ) = Σ w · irradiance`` (as in ``bench_frame_grad.py``) for ``--gradients`` configs. Arrays are
+``L(δ) = Σ w · irradiance`` (``bench_frame_grad.frame_loss``) for ``--gradients`` configs. Arrays are
 stored in one npz, with the device's name.
 
 ``compare`` prints, per array, the relative RMSE ‖a − b‖ / ‖b‖ and the largest absolute difference
@@ -39,24 +39,15 @@ def _scene(path: str):
 
 
 def _gradient(path: str):
-    import equinox as eqx
     import jax
     import jax.numpy as jnp
+    from bench_frame_grad import frame_loss  # the script's folder is on sys.path
 
     from jshadow.entities import frame_time
-    from jshadow.scene import render_at
 
     scene = _scene(path)
-    occ = scene.occluders[0]
-    t = frame_time(scene.n_frames // 2, scene.n_frames)
-    n_rec = scene.receivers.points.shape[0]
-    weights = jnp.asarray(np.random.default_rng(0).uniform(0.5, 1.5, (n_rec, 3)), scene.dtype)
-
-    def loss(delta):
-        s = eqx.tree_at(lambda s: s.occluders[0].unit_vertices, scene, occ.unit_vertices + delta)
-        return jnp.sum(weights * render_at(s, t).irradiance[:n_rec])
-
-    return np.asarray(jax.jit(jax.grad(loss))(jnp.zeros_like(occ.unit_vertices)))
+    loss = frame_loss(scene, frame_time(scene.n_frames // 2, scene.n_frames))
+    return np.asarray(jax.jit(jax.grad(loss))(jnp.zeros_like(scene.occluders[0].unit_vertices)))
 
 
 def save(out: str, precisions: list[str], gradients: list[str]) -> None:

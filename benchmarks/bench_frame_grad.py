@@ -56,6 +56,20 @@ def _time(fn, *args, runs):
 _GRADIENTS: dict = {}  # (config, bsv_gradient) -> vertex gradient, to compare the two modes
 
 
+def frame_loss(scene, t):
+    """``L(δ) = Σ w · irradiance`` of :func:`jshadow.scene.render_at` at time t, with per-vertex
+    offsets δ (V, 3) added to the first occluder's rest pose and fixed random weights w (seed 0)."""
+    occ = scene.occluders[0]
+    n_rec = scene.receivers.points.shape[0]
+    weights = jnp.asarray(np.random.default_rng(0).uniform(0.5, 1.5, (n_rec, 3)), scene.dtype)
+
+    def loss(delta):
+        s = eqx.tree_at(lambda s: s.occluders[0].unit_vertices, scene, occ.unit_vertices + delta)
+        return jnp.sum(weights * render_at(s, t).irradiance[:n_rec])
+
+    return loss
+
+
 def bench(path: str, runs: int, bsv_gradient: str = "raycast") -> dict:
     d = tomllib.loads((ROOT / path).read_text())
     d.setdefault("method", {})["bsv_gradient"] = bsv_gradient
@@ -70,13 +84,7 @@ def bench(path: str, runs: int, bsv_gradient: str = "raycast") -> dict:
     render_ms = float(np.median([rend.frame(frame)[1]["total_ms"] for _ in range(runs)]))
 
     n_rec = scene.receivers.points.shape[0]
-    weights = jnp.asarray(np.random.default_rng(0).uniform(0.5, 1.5, (n_rec, 3)), scene.dtype)
-
-    def loss(delta):
-        s = eqx.tree_at(lambda s: s.occluders[0].unit_vertices, scene, occ.unit_vertices + delta)
-        e = render_at(s, t).irradiance[:n_rec]
-        return jnp.sum(weights * e)
-
+    loss = frame_loss(scene, t)
     delta = jnp.zeros_like(occ.unit_vertices)
     loss(delta)  # once with a concrete rest pose: the BSV's static slot sizes are measured on it
     c_f, fwd_ms = _time(jax.jit(loss), delta, runs=runs)

@@ -171,8 +171,8 @@ def mesh_bsv(occ: MeshOccluder, t, scene: Scene, differentiable: bool = True) ->
     the custom-derivative wrapper (which traces its primal and so loses the edge-scan's staging), and
     for a concrete occluder sampled by the edge-scan the deformation and the BSV are one compiled call
     (:func:`jshadow.visibility.bsv_mesh_edgescan_of`; instead of several dispatches and eager
-    operations: on two CPU cores the BSV stage took 0.88–0.94× the time, whole frames 0.92–0.95×:
-    airplane, egg, animated bunny, in-process A/B, alternating frames).
+    operations: on two CPU cores the BSV stage took 0.88–0.96× the time, whole frames 0.91–0.95×:
+    airplane, egg, animated bunny, in-process A/B, alternating frames; BENCHMARKS.md).
     """
     m = scene.method
     t = jnp.asarray(t, occ.unit_vertices.dtype)  # an array: one compile for all t

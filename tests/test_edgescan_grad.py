@@ -119,10 +119,9 @@ def _dense_winding_chi(pair, total):
     return chi
 
 
-def test_node_visibility_is_the_winding_number_of_the_silhouette(monkeypatch):
-    # the per-pixel lists and the layer count at the pixel centre give, at every node, the count of
-    # the trapezoid rule over all silhouette edges of the view (float32 against float64: a few
-    # nodes within rounding of another edge may differ)
+def _bunny_small_nodes():
+    """bunny_small at 3 × 4 views of 32² pixels: prepared vertices, faces, edge table, layer counts,
+    the measured gradient sizes and the keyword arguments of ``_visible_nodes`` (without tiers)."""
     from jshadow.visibility import _edgescan_grad
     from jshadow.visibility._edgescan import _prepare
 
@@ -133,6 +132,16 @@ def test_node_visibility_is_the_winding_number_of_the_silhouette(monkeypatch):
     v, fj, table = _prepare(x, f, None)
     counts = _edgescan_grad._counts_of(v, fj, table, grid, res, SHELL)
     kw = dict(grid=grid, directions=res, shell=SHELL, slots=gs[0], nodes=2, piece_slots=gs[2], window=gs[3])
+    return v, fj, table, counts, gs, kw
+
+
+def test_node_visibility_is_the_winding_number_of_the_silhouette(monkeypatch):
+    # the per-pixel lists and the layer count at the pixel centre give, at every node, the count of
+    # the trapezoid rule over all silhouette edges of the view (float32 against float64: a few
+    # nodes within rounding of another edge may differ)
+    from jshadow.visibility import _edgescan_grad
+
+    v, fj, table, counts, gs, kw = _bunny_small_nodes()
 
     def visible(v, counts):
         return _edgescan_grad._visible_nodes(v, fj, table, counts, **kw, long_slots=(gs[4], gs[5]))
@@ -165,15 +174,8 @@ def test_node_visibility_in_blocks_skips_only_padding(monkeypatch):
     # the tiers of list reading run in blocks, and a block wholly past the live rows (the padding of
     # the static sizes) is not computed: χ must be exactly the unsplit one, with blocks skipped
     from jshadow.visibility import _edgescan_grad
-    from jshadow.visibility._edgescan import _prepare
 
-    m = load_mesh(ASSETS / "bunny_small.obj")
-    x, f = np.asarray(m.vertices, np.float32), np.asarray(m.faces, np.int32)
-    grid, res = (3, 4), (32, 32)
-    gs = _edgescan_grad.edgescan_grad_slots(x, f, grid, SHELL, directions=res)
-    v, fj, table = _prepare(x, f, None)
-    counts = _edgescan_grad._counts_of(v, fj, table, grid, res, SHELL)
-    kw = dict(grid=grid, directions=res, shell=SHELL, slots=gs[0], nodes=2, piece_slots=gs[2], window=gs[3])
+    v, fj, table, counts, gs, kw = _bunny_small_nodes()
 
     outs = {}
     for blocks in (1, 4, 7):  # a new function each time: jax.jit would reuse the first trace

@@ -179,6 +179,22 @@ def test_jit_of_an_edgescan_render_equals_the_eager_render():
     assert measured is not None and measured[0] < _traced_default_slots(faces.shape[0], (8, 12), (16, 16))[0]
 
 
+def _with_traced_rest_pose(occ, lookup):
+    """What ``lookup(o)`` returns, traced once, for ``occ`` with its rest pose a tracer (as under
+    ``jax.grad`` with respect to ``unit_vertices``). A new function each call: jax.jit would reuse
+    an earlier trace of the same function."""
+    seen = []
+
+    @jax.jit
+    def probe(u):
+        seen.append(lookup(eqx.tree_at(lambda o: o.unit_vertices, occ, u)))
+        return u
+
+    probe(occ.unit_vertices + 0.01)
+    (out,) = seen
+    return out
+
+
 def test_traced_rest_pose_reuses_the_slot_sizes_measured_on_a_concrete_one():
     # fitting per-vertex offsets traces the rest pose: the silhouette slot sizes measured on the
     # concrete pose of the same topology must be reused (not "every edge", not a guess)
@@ -187,18 +203,13 @@ def test_traced_rest_pose_reuses_the_slot_sizes_measured_on_a_concrete_one():
     occ = scene_with(StretchY(jnp.float32(0.2))).occluders[0]
     faces = np.asarray(occ.faces)
     image = Method(bsv_grid=(8, 12), directions=(16, 16), bsv_gradient="image")
-    concrete = (_slots(occ, faces, METHOD), _image_grad_slots(occ, faces, image))
-    seen = []
 
-    @jax.jit
-    def probe(u):
-        o = eqx.tree_at(lambda o: o.unit_vertices, occ, u)
-        seen.append((_slots(o, faces, METHOD), _image_grad_slots(o, faces, image)))
-        return u
+    def both(o):
+        return _slots(o, faces, METHOD), _image_grad_slots(o, faces, image)
 
-    probe(occ.unit_vertices + 0.01)
+    concrete, seen = both(occ), _with_traced_rest_pose(occ, both)
     assert concrete[0] is not None and concrete[1] is not None
-    assert seen == [concrete]
+    assert seen == concrete
 
     # the image-plane sizes are measured lazily (only a derivative needs them): a concrete shape
     # seen by a forward pass leaves its measurement pending, and a traced rest pose of the same
@@ -206,16 +217,7 @@ def test_traced_rest_pose_reuses_the_slot_sizes_measured_on_a_concrete_one():
     other = Method(bsv_grid=(5, 7), directions=(16, 16), bsv_gradient="image")  # no other test's
     pending = _image_grad_slots(occ, faces, other, lazy=True)
     assert callable(pending)
-    lazy_seen = []
-
-    @jax.jit
-    def probe_lazy(u):
-        o = eqx.tree_at(lambda o: o.unit_vertices, occ, u)
-        lazy_seen.append(_image_grad_slots(o, faces, other, lazy=True))
-        return u
-
-    probe_lazy(occ.unit_vertices + 0.01)
-    assert lazy_seen == [pending]
+    assert _with_traced_rest_pose(occ, lambda o: _image_grad_slots(o, faces, other, lazy=True)) == pending
     sizes = pending()
     assert len(sizes) == 6 and sizes == _image_grad_slots(occ, faces, other)
 
@@ -224,27 +226,17 @@ def test_a_traced_rest_pose_measures_its_sizes_on_the_occluder_built_before_the_
     # A user's first jax.grad with respect to unit_vertices, with no render before it: the
     # occluder built concretely (as build_scene builds it) is remembered per topology, and a traced
     # rest pose of that topology is measured on it, not given generous defaults (the airplane's
-    # frame gradient: 2.1 s -> 0.17 s). Faces in another order: a topology no other test has seen.
+    # frame gradient: 1.6 s -> 0.16 s,
+    # benchmarks/bench_first_grad.py). Faces in another order: a topology no other test has seen.
     from jshadow.scene import _edgescan_slots, _image_grad_slots
 
     faces = jnp.asarray(np.roll(np.asarray(_ICO.faces), 7, axis=0), jnp.int32)
     occ = scene_with(StretchY(jnp.float32(0.2)), faces=faces).occluders[0]
     method = Method(bsv_grid=(6, 9), directions=(16, 16), bsv_gradient="image")
-    seen = []
-
-    @jax.jit
-    def probe(u):
-        o = eqx.tree_at(lambda o: o.unit_vertices, occ, u)
-        seen.append(
-            (
-                _edgescan_slots(o, np.asarray(faces), method),
-                _image_grad_slots(o, np.asarray(faces), method, lazy=True),
-            )
-        )
-        return u
-
-    probe(occ.unit_vertices + 0.01)
-    ((forward, pending),) = seen
+    f_np = np.asarray(faces)
+    forward, pending = _with_traced_rest_pose(
+        occ, lambda o: (_edgescan_slots(o, f_np, method), _image_grad_slots(o, f_np, method, lazy=True))
+    )
     assert forward is not None and callable(pending)
     # the sizes of the concrete occluder's poses (rest and five of its animation), measured now
     assert forward == _edgescan_slots(occ, np.asarray(faces), method)
@@ -273,13 +265,5 @@ def test_sizes_of_a_more_deformed_concrete_pose_are_merged_into_the_traced_ones(
     sizes_a = _image_grad_slots(a, f_np, method, lazy=True)()  # as a derivative calls it
     sizes_b = _image_grad_slots(b, f_np, method, lazy=True)()
     assert sizes_a != sizes_b  # the two shapes need different sizes
-    seen = []
-
-    @jax.jit
-    def probe(u):
-        o = eqx.tree_at(lambda o: o.unit_vertices, a, u)
-        seen.append(_image_grad_slots(o, f_np, method, lazy=True))
-        return u
-
-    probe(a.unit_vertices)
-    assert seen == [tuple(max(x, y) for x, y in zip(sizes_a, sizes_b, strict=True))]
+    seen = _with_traced_rest_pose(a, lambda o: _image_grad_slots(o, f_np, method, lazy=True))
+    assert seen == tuple(max(x, y) for x, y in zip(sizes_a, sizes_b, strict=True))

@@ -169,36 +169,30 @@ def test_renderer_bsv_of_a_deforming_mesh_is_one_call_equal_to_the_two_step_path
     scene = Scene(m, plane(n=3), (occ,), (), Environment(f32(1, 1, 1)), n_frames=4)
     faces = np.asarray(occ.faces)
     kw = dict(n=m.field_bands, grid=m.bsv_grid, directions=m.directions, shell=m.shell)
-    topology = es._topology_key(faces, occ.unit_vertices.shape[0])
+    config = (m.bsv_grid, m.directions, m.shell)
+    key = es._rest_key(faces, occ.unit_vertices.shape[0], jnp.float32, *config)
 
     def two_step(t):
         return bsv_mesh(_vertices_at(occ, jnp.float32(t)), faces, method=m.bsv_method, **kw).coeffs
 
-    def rest_key():
-        return next(
-            k for k in es._REST_SLOTS if k[0] == topology and k[2:] == (m.bsv_grid, m.directions, m.shell)
-        )
-
-    for k in [k for k in es._REST_SLOTS if k[0] == topology]:
-        del es._REST_SLOTS[k]  # this topology unseen: the first call measures its slots
+    es._REST_SLOTS.pop(key, None)  # this topology unseen: the first call measures its slots
     compiles = es._run_jit._cache_size()
     got = {t: mesh_bsv(occ, t, scene, differentiable=False) for t in (0.0, 0.7)}
     assert es._run_jit._cache_size() == compiles  # the two-step path's edge-scan was never compiled
-    measured = es._REST_SLOTS[rest_key()]
+    measured = es._REST_SLOTS[key]
     for t, bsv in got.items():  # 0.7: twisted beyond the measured pose (grown slots if it overflows)
         np.testing.assert_array_equal(np.asarray(bsv.coeffs), np.asarray(two_step(t)))
 
     # slots far too small: the call overflows, grows them, reruns, and the two-step path starts from
     # the grown slots too
-    es._REST_SLOTS[rest_key()] = (1, 1, 1, 1)
+    es._REST_SLOTS[key] = (1, 1, 1, 1)
     repaired = mesh_bsv(occ, 1.0, scene, differentiable=False).coeffs
     np.testing.assert_array_equal(np.asarray(repaired), np.asarray(two_step(1.0)))
-    es._REST_SLOTS[rest_key()] = measured
+    es._REST_SLOTS[key] = measured
     table = es._cached_edge_table(faces, occ.unit_vertices.shape[0])
-    tiny = es._check_slots((1, 1, 1, 1), table.a.shape[0] * 6 * 10, 16)
-    size = (faces.shape[0], occ.unit_vertices.shape[0], m.bsv_grid, m.directions, m.shell, tiny)
-    grown = [v for k, v in es._GROWN.items() if k[1:] == size]
-    assert len(grown) == 1 and grown[0] != tiny and grown[0][0] > tiny[0]
+    tiny = es._check_slots((1, 1, 1, 1), *es._slot_bounds(table, m.bsv_grid, m.directions))
+    grown = es._GROWN[es._grown_key(table, *config, tiny)]
+    assert grown != tiny and grown[0] > tiny[0]
 
 
 def test_outputs_finite_with_receivers_on_and_inside_occluders():

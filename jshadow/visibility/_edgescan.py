@@ -594,14 +594,30 @@ def _resolve(vertices, faces, grid, directions, shell, edge_table, slots):
         if isinstance(vertices, jax.core.Tracer):
             slots = _traced_default_slots(table.num_faces, grid, directions)
         else:  # measured on the first pose seen with this topology (the rest pose), then reused
-            key = (_topology_key(faces, vertices.shape[0]), str(vertices.dtype), grid, directions, shell)
-            if key not in _REST_SLOTS:
-                if len(_REST_SLOTS) >= 256:
-                    _REST_SLOTS.clear()
-                _REST_SLOTS[key] = edgescan_slots(vertices, faces, grid, directions, shell, edge_table=table)
-            slots = _REST_SLOTS[key]
-    slots = _check_slots(slots, int(table.a.shape[0]) * grid[0] * grid[1], directions[1])
+            slots = _rest_slots(vertices, faces, table, grid, directions, shell)
+    slots = _check_slots(slots, *_slot_bounds(table, grid, directions))
     return vertices, faces, table, grid, directions, shell, slots
+
+
+def _rest_key(faces, num_vertices, dtype, grid, directions, shell):
+    """Key of ``_REST_SLOTS``: the topology, the vertices' dtype and the configuration."""
+    return (_topology_key(faces, num_vertices), jnp.dtype(dtype).name, grid, directions, shell)
+
+
+def _rest_slots(vertices, faces, table, grid, directions, shell):
+    """The slots of this topology and configuration, measured on ``vertices`` (concrete) if it is the
+    first pose seen with them, else those measured then."""
+    key = _rest_key(faces, vertices.shape[0], vertices.dtype, grid, directions, shell)
+    if key not in _REST_SLOTS:
+        if len(_REST_SLOTS) >= 256:
+            _REST_SLOTS.clear()
+        _REST_SLOTS[key] = edgescan_slots(vertices, faces, grid, directions, shell, edge_table=table)
+    return _REST_SLOTS[key]
+
+
+def _slot_bounds(table, grid, directions):
+    """``(cap, width)`` of :func:`_check_slots` for this edge table and configuration."""
+    return int(table.a.shape[0]) * grid[0] * grid[1], directions[1]
 
 
 _OVERFLOW = "edge-scan slots overflowed: pass larger slots=(S, S2, S3, K) (see edgescan_slots)"
@@ -616,31 +632,43 @@ def _compute(vertices, faces, table, grid, directions, shell, slots, finish=lamb
     Concrete overflows are remembered: later calls with the same configuration and slots start
     from the grown slots (one extra compile in all, not one extra pass per call).
     """
-    cap, width = int(table.a.shape[0]) * grid[0] * grid[1], directions[1]
-    key = (table.num_edges, table.num_faces, table.num_vertices, grid, directions, shell, slots)
-    traced = isinstance(vertices, jax.core.Tracer)
-    if not traced:
-        slots = _GROWN.get(key, slots)
+    if isinstance(vertices, jax.core.Tracer):
+        diff, overflow, _, center, radius = _run(vertices, faces, table, grid, directions, shell, slots)
+        diff = eqx.error_if(diff, overflow, _OVERFLOW) if check else diff
+        return finish(diff), overflow, center, radius
+
+    def call(slots):  # one compiled call of staged conditionals (~25 % faster than inlined)
+        diff, overflow, counts, center, radius = _run_jit(
+            vertices, faces, table, grid, directions, shell, slots
+        )
+        return finish(diff), overflow, counts, center, radius
+
+    out, overflow, _, center, radius = _until_fits(call, table, grid, directions, shell, slots)
+    return out, overflow, center, radius
+
+
+def _grown_key(table, grid, directions, shell, slots):
+    """Key of ``_GROWN``: the configuration and the slots it started from."""
+    return (table.num_edges, table.num_faces, table.num_vertices, grid, directions, shell, slots)
+
+
+def _until_fits(call, table, grid, directions, shell, slots):
+    """``call(slots) -> (out, overflow, counts, ...)`` on concrete data, starting from the slots an
+    earlier overflow of this configuration grew ``slots`` to, and rerun with larger ones after an
+    overflow: each at least 1.25× the count it needed, remembered in ``_GROWN`` for later calls. The
+    counts are exact for the slotted edges, so one retry suffices unless S itself overflowed (then
+    the long-edge count is a lower bound and a second retry may follow)."""
+    cap, width = _slot_bounds(table, grid, directions)
+    key = _grown_key(table, grid, directions, shell, slots)
+    slots = _GROWN.get(key, slots)
     while True:
-        run = _run if traced else _run_jit  # one compiled call of staged conditionals (~25 % faster)
-        diff, overflow, counts, center, radius = run(vertices, faces, table, grid, directions, shell, slots)
-        if traced:
-            diff = eqx.error_if(diff, overflow, _OVERFLOW) if check else diff
-            return finish(diff), overflow, center, radius
-        out = finish(diff)
-        if not bool(overflow):
-            return out, overflow, center, radius
-        slots = _grown(slots, counts, cap, width)
+        out = call(slots)  # (``finish`` is dispatched inside, before the host waits for the flag)
+        if not bool(out[1]):
+            return out
+        need = [int(x) for x in np.asarray(out[2])]
+        grow = [max(x, math.ceil(1.25 * y)) for x, y in zip(slots, need, strict=True)]
+        slots = _check_slots(tuple(grow), cap, width)
         _GROWN[key] = slots
-
-
-def _grown(slots, counts, cap, width):
-    """Slots after an overflow: each at least 1.25× the count it needed. The counts are exact for
-    the slotted edges, so one retry suffices unless S itself overflowed (then the long-edge count is
-    a lower bound and a second retry may follow)."""
-    need = [int(x) for x in np.asarray(counts)]
-    grow = [max(x, math.ceil(1.25 * y)) for x, y in zip(slots, need, strict=True)]
-    return _check_slots(tuple(grow), cap, width)
 
 
 def edgescan_occlusion(
@@ -771,29 +799,23 @@ def bsv_mesh_edgescan_of(
         raise ValueError(f"n (number of SH bands) must be a positive int, got {n!r}")
     grid, directions = _check_pair(grid, "grid"), _check_pair(directions, "directions")
     shell = _check_shell(shell)
-    faces = np.asarray(faces)
+    faces = np.asarray(faces, np.int32)  # as bsv_mesh_edgescan keys them: the same slots
     dtype = jnp.dtype(dtype)
-    key = (_topology_key(faces, num_vertices), dtype.name, grid, directions, shell)
-    if key not in _REST_SLOTS:  # measured on this first pose, as bsv_mesh_edgescan measures it
-        _resolve(vertices_fn(*args), faces, grid, directions, shell, None, None)
+    key = _rest_key(faces, num_vertices, dtype, grid, directions, shell)
     table = _cached_edge_table(faces, num_vertices)
-    cap, width = int(table.a.shape[0]) * grid[0] * grid[1], directions[1]
-    slots = _check_slots(_REST_SLOTS[key], cap, width)
-    grown_key = (table.num_edges, table.num_faces, table.num_vertices, grid, directions, shell, slots)
-    slots = _GROWN.get(grown_key, slots)
+    if key in _REST_SLOTS:
+        slots = _REST_SLOTS[key]
+    else:  # measured on this first pose, as bsv_mesh_edgescan measures it
+        slots = _rest_slots(jnp.asarray(vertices_fn(*args), dtype), faces, table, grid, directions, shell)
+    slots = _check_slots(slots, *_slot_bounds(table, grid, directions))
     run_key = (*key, int(n))
     if run_key not in _OF:
         if len(_OF) >= 16:
             _OF.clear()
         _OF[run_key] = _vertices_then_bsv(faces, _basis_weights(directions, shell, int(n), dtype), int(n))
-    run = _OF[run_key]
-    while True:
-        out = run(vertices_fn, args, table, grid, directions, shell, slots)
-        coeffs, overflow, counts, center, radius = out
-        if not bool(overflow):
-            return BSV(coeffs, center, radius, shell * radius)
-        slots = _grown(slots, counts, cap, width)
-        _GROWN[grown_key] = slots
+    run = partial(_OF[run_key], vertices_fn, args, table, grid, directions, shell)
+    coeffs, _, _, center, radius = _until_fits(run, table, grid, directions, shell, slots)
+    return BSV(coeffs, center, radius, shell * radius)
 
 
 def _vertices_then_bsv(faces: np.ndarray, basis_w, n: int):
