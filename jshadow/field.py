@@ -39,6 +39,9 @@ __all__ = [
     "interpolate_bsv",
     "bsv_visibility_sh",
     "bsv_visibility_and_distance",
+    "field_nodes",
+    "field_corners",
+    "field_cells",
     "frame_to_world",
     "frame_to_world_cs",
     "sphere_visibility_sh",
@@ -110,8 +113,63 @@ def bsv_visibility_and_distance(
     """:func:`bsv_visibility_sh` and the distance |x − c| (...,) from each receiver to the occluder's
     centre, which the field computes anyway (the combination orders entities by it; a separate
     ``norm`` of the (N, 3) offsets cost XLA:CPU about 0.2 ms per 27501 receivers, BENCHMARKS.md)."""
-    t_n, p_n, _ = bsv.coeffs.shape
     n = sh.sh_bands_of(bsv.coeffs.shape[-1]) if bands is None else int(bands)
+    flat = field_nodes(bsv, table, n)
+    rows, weights, rotation, in_range, d = field_corners(bsv, table, points)
+    s_d = 0.0
+    for row, w in zip(rows, weights, strict=True):
+        s_d = s_d + w[..., None] * flat[row]
+    cos_phi, sin_phi, cos_theta, sin_theta = rotation
+    s_w = sh.rotate_zyz_cs(s_d, (cos_phi, sin_phi), (cos_theta, sin_theta), prepared=True)
+    vis = jnp.where(in_range[..., None], s_w, unit_visibility(d.shape, n, s_w.dtype))
+    return vis, d
+
+
+def field_nodes(bsv: BSV, table: MkTable, n: int) -> Float[Array, "KTP n2"]:
+    """The field's interpolation table (K·T·P, n²) of one BSV: every tabulated ``M_{k_t}`` (truncated
+    to n bands), the frame's signs and the rotation's constant first product applied to every BSV
+    sample (:func:`bsv_visibility_and_distance`). Row ``(t·T + i)·P + j`` belongs to distance k_t
+    and shell point (θ_i, φ_j). Linear in the BSV's coefficients."""
+    t_n, p_n, _ = bsv.coeffs.shape
+    mats = _node_matrices(table, bsv.coeffs.shape[-1], n, bsv.coeffs.dtype)  # (K, nb², n²)
+    # (K·T·P, n²): M_k, the frame's signs and D(Q)ᵀ at every sample and k_t
+    flat = jnp.matmul(bsv.coeffs.reshape(1, t_n * p_n, -1), mats, precision=jax.lax.Precision.HIGHEST)
+    return flat.reshape(-1, n * n)
+
+
+def field_corners(bsv: BSV, table: MkTable, points: Float[Array, "... 3"]) -> tuple:
+    """Where receivers read the field's table (:func:`field_nodes`), from the geometry alone.
+
+    Returns ``(rows, weights, rotation, in_range, d)``: the eight corners of each receiver's
+    trilinear cell in (k, θ, φ) as eight ``(...)`` int32 row indices and eight weights (summing to
+    1), the rotation's ``(cos φ, sin φ, cos θ, sin θ)`` to the world frame
+    (:func:`jshadow.sh.rotate_zyz_cs` with ``prepared=True``), whether the receiver is within the
+    table's range (else its visibility is 1), and its distance to the centre. Only the BSV's
+    centre, shell radius and grid shape are read, not its coefficients; the shell radius only
+    through k (:func:`field_cells` is the rest)."""
+    t_n, p_n = bsv.coeffs.shape[0], bsv.coeffs.shape[1]
+    (i0, j0, j1, wa, wb), rotation, d, inv_d = field_cells(bsv, points)
+    k = jnp.where(inv_d > 0, bsv.shell_radius * inv_d, jnp.asarray(1e6, d.dtype))  # d = 0: beyond the table
+    t0, wk = mk_bracket(table, k)
+    rows, weights = [], []
+    for dt, w_t in ((0, 1.0 - wk), (1, wk)):
+        for i, w_i in ((i0, 1.0 - wa), (jnp.minimum(i0 + 1, t_n - 1), wa)):  # one ring: wa = 0
+            for j, w_j in ((j0, 1.0 - wb), (j1, wb)):
+                weights.append((w_t * w_i * w_j).astype(bsv.coeffs.dtype))
+                rows.append(((t0 + dt) * t_n + i) * p_n + j)
+    return rows, weights, rotation, mk_in_range(table, k), d
+
+
+def field_cells(bsv: BSV, points: Float[Array, "... 3"]) -> tuple:
+    """The angular part of :func:`field_corners`, which the shell radius does not change.
+
+    Returns ``((i0, j0, j1, wa, wb), rotation, d, inv_d)``: each receiver's bilinear cell on the
+    BSV's θ×φ grid (rows i0, i0 + 1 clamped, columns j0, j1; weights wa in θ and wb in φ), the
+    rotation's ``(cos φ, sin φ, cos θ, sin θ)``, its distance d to the centre and 1/d (0 at the
+    centre). The field's ratio is ``k = R/d = R · inv_d`` for the shell radius R. A receiver whose
+    position relative to the centre does not change keeps all of these while the occluder deforms
+    (:mod:`jshadow.readout`)."""
+    t_n, p_n = bsv.coeffs.shape[0], bsv.coeffs.shape[1]
     rel = points - bsv.center
     x, y, z = rel[..., 0], rel[..., 1], rel[..., 2]
     rho2 = x * x + y * y
@@ -122,23 +180,8 @@ def bsv_visibility_and_distance(
     inv_d = jnp.where(off_centre, 1.0 / jnp.where(off_centre, d, 1.0), 0.0)
     cos_phi, sin_phi = jnp.where(off_axis, x * inv_rho, 1.0), y * inv_rho
     cos_theta, sin_theta = jnp.where(off_centre, z * inv_d, 1.0), rho * inv_d
-    k = jnp.where(off_centre, bsv.shell_radius * inv_d, jnp.asarray(1e6, d.dtype))
-
-    mats = _node_matrices(table, bsv.coeffs.shape[-1], n, bsv.coeffs.dtype)  # (K, nb², n²)
-    # (K·T·P, n²): M_k, the frame's signs and D(Q)ᵀ at every sample and k_t
-    flat = jnp.matmul(bsv.coeffs.reshape(1, t_n * p_n, -1), mats, precision=jax.lax.Precision.HIGHEST)
-    flat = flat.reshape(-1, n * n)
-    i0, j0, j1, wa, wb = _grid_coords(theta, phi, t_n, p_n)
-    t0, wk = mk_bracket(table, k)
-    s_d = 0.0
-    for dt, w_t in ((0, 1.0 - wk), (1, wk)):
-        for i, w_i in ((i0, 1.0 - wa), (jnp.minimum(i0 + 1, t_n - 1), wa)):  # one ring: wa = 0
-            for j, w_j in ((j0, 1.0 - wb), (j1, wb)):
-                w = (w_t * w_i * w_j).astype(flat.dtype)
-                s_d = s_d + w[..., None] * flat[((t0 + dt) * t_n + i) * p_n + j]
-    s_w = sh.rotate_zyz_cs(s_d, (cos_phi, sin_phi), (cos_theta, sin_theta), prepared=True)
-    vis = jnp.where(mk_in_range(table, k)[..., None], s_w, unit_visibility(d.shape, n, s_w.dtype))
-    return vis, d
+    cell = _grid_coords(theta, phi, t_n, p_n)
+    return cell, (cos_phi, sin_phi, cos_theta, sin_theta), d, inv_d
 
 
 _NODE_MATRICES: dict = {}

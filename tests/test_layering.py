@@ -26,13 +26,14 @@ LAYER = {
     "compare": 6,
     "optim": 7,
     "runner": 7,
+    "readout": 7,
     "picture": 7,
     "config": 8,
     "cli": 9,
     "__init__": 10,
 }
 REFERENCE_SIDE = {"reference", "sampling"}
-SHADOW_FIELD_CODE = {"scaling", "lights", "envlights", "field", "scene", "runner", "optim"}
+SHADOW_FIELD_CODE = {"scaling", "lights", "envlights", "field", "scene", "readout", "runner", "optim"}
 
 
 def top_module(path: pathlib.Path) -> str:

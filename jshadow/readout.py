@@ -1,0 +1,246 @@
+"""Shading read out of the field's table: frames whose geometry does not move.
+
+With one BSV occluder, the irradiance at a receiver is a fixed function of a few *linear*
+functionals of its world-frame visibility ``v``: ``⟨v, w_c⟩`` for the environment's three colour
+channels (``w_c = M_env[c] T``, :func:`jshadow.scene.combine`) and ``⟨v, T ⊛ cap_j⟩`` for each
+sphere light j, each then finished by the shading (ratio or product) and the light's colour. The
+field itself is linear too (:func:`jshadow.field.bsv_visibility_and_distance`): ``v = R · s`` with
+``s`` the trilinear interpolation of eight rows of the frame's node table
+(:func:`jshadow.field.field_nodes`) and ``R`` the rotation from the receiver's local frame to the
+world. So
+
+    ⟨v, w⟩ = ⟨R s, w⟩ = ⟨s, Rᵀ w⟩ = Σ_corners weight · ⟨node_row, Rᵀ w⟩.
+
+Everything but the node table depends on the geometry alone: the eight rows and weights (the
+receiver's position relative to the sampling shell), the rotation, and the functionals ``w`` (the
+receiver's normal, the lights' positions, the environment). When those do not change between frames
+— receivers that do not move, an occluder that deforms in place inside its fixed bounding sphere,
+lights that stay where they are, which is the deformable-shadow-fields paper's setting (Sec. 4.3) —
+they are computed once (:func:`prepare_readout`), and a frame is the node table's GEMM, eight
+gathered rows per receiver and ``C`` dot products of n² (:func:`shade_readout`), instead of the
+angles, the per-receiver SH rotation and the combination's products. The numbers are those of the
+general path up to float rounding (the rotation is applied to the functionals instead of the
+visibility; ``tests/test_readout.py``), and the saving is measured in BENCHMARKS.md ("Rendering").
+
+Scope (:func:`readout_unsupported` names what rules it out): exactly one occluder, with a BSV (a
+mesh, or a sphere on the "bsv" path); no ray-cast own-vertex rows, occlusion images or environment
+lights; receivers and lights fixed (the scene's positions cannot be animated; a deforming mesh's own
+vertices move, so ``self_shadow`` rules out a deforming mesh). Several occluders multiply their
+visibilities (an SH product), which is not linear in each.
+"""
+
+from __future__ import annotations
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Float, Int
+
+from . import sh
+from ._numerics import safe_norm
+from .entities import Scene
+from .field import bsv_visibility_and_distance, field_cells, field_nodes
+from .lights import environment_irradiance, sphere_light_irradiance, sphere_light_sh
+from .scaling import mk_bracket, mk_in_range
+from .scene import _shadow_ratio
+from .visibility import BSV
+
+__all__ = ["Readout", "readout_unsupported", "prepare_readout", "shade_readout"]
+
+
+class Readout(eqx.Module):
+    """What a frame of a fixed-geometry scene reads from the field's table (module docstring).
+
+    N receivers, C functionals: the environment's three channels (if any) first, then one per
+    sphere light.
+
+    Attributes:
+        rows: (4, N) int32 rows ``i·P + j`` of the BSV's θ×φ grid at the corners of each
+            receiver's cell (:func:`jshadow.field.field_cells`); the field's table holds them once
+            per tabulated distance k_t, T·P rows apart (:func:`jshadow.field.field_nodes`).
+        weights: (4, N) their bilinear weights.
+        inv_d: (N,) 1 / the receiver's distance to the centre (0 at the centre): a deforming
+            occluder's shell radius R changes from pose to pose, and with it k = R/d, so the
+            bracket in k is found per frame (N comparisons against the table's K ratios).
+        vectors: (C, n², N) the functionals in each receiver's local frame, ``Rᵀ w`` (zero where
+            a light is nearer than the occluder, which then does not shadow it).
+        offset: (C, N) the functional's value for visibility 1 where ``vectors`` is zero, else 0.
+        unit: (C, N) the functional's value for visibility 1 (receivers beyond the table's range).
+        world: (C, n², N) the functionals in the world frame, for poses whose bounding sphere's
+            centre moved (:func:`shade_readout` with ``moved``).
+        light_distance: (C, N) each functional's light's distance from the receiver (∞ for the
+            environment): a light counts the occluder only where the occluder's centre is nearer.
+        points: (N, 3) the receivers.
+        unoccluded: (C, N) the n-band unoccluded value (the ratio's denominator).
+        exact: (C, N) the exact unoccluded irradiance (ratio shading; the unoccluded otherwise).
+        colours: (C, 3) the colour each functional's finished value is multiplied by: the unit
+            vectors of the three channels, then each light's radiance.
+        center: the BSV's bounding-sphere centre (3,) that the rows were computed for.
+        ratio: (static) ratio shading (else Zhou et al.'s products, as in ``combine``).
+    """
+
+    rows: Int[Array, "4 N"]
+    weights: Float[Array, "4 N"]
+    inv_d: Float[Array, " N"]
+    vectors: Float[Array, "C n2 N"]
+    offset: Float[Array, "C N"]
+    unit: Float[Array, "C N"]
+    world: Float[Array, "C n2 N"]
+    light_distance: Float[Array, "C N"]
+    points: Float[Array, "N 3"]
+    unoccluded: Float[Array, "C N"]
+    exact: Float[Array, "C N"]
+    colours: Float[Array, "C 3"]
+    center: Float[Array, "3"]
+    ratio: bool = eqx.field(static=True)
+
+
+def readout_unsupported(
+    scene: Scene, bsvs, own=None, images=None, env_lights=None, moving_receivers: bool = False
+) -> str | None:
+    """Why a frame of ``scene`` cannot be read out (module docstring), or None if it can.
+
+    ``bsvs`` are the frame's BSVs (None for an analytic sphere), ``own``/``images``/``env_lights``
+    the renderer's ray-cast own-vertex rows, occlusion images and environment lights (None when
+    unused), ``moving_receivers`` whether the receivers change between frames (a deforming mesh's
+    own vertices). The caller compares each frame's BSV centre with the readout's."""
+    if len(scene.occluders) != 1:
+        return f"{len(scene.occluders)} occluders (the readout takes exactly one)"
+    if bsvs[0] is None:
+        return "an analytic sphere occluder (no BSV)"
+    if own is not None:
+        return "ray-cast own-vertex visibility"
+    if images is not None or env_lights is not None:
+        return "occlusion images or environment lights"
+    if moving_receivers:
+        return "the receivers move (a deforming occluder's own vertices)"
+    if scene.method.shading not in ("ratio", "product"):
+        return f"shading {scene.method.shading!r}"
+    return None
+
+
+def prepare_readout(
+    scene: Scene,
+    bsv: BSV,
+    lighting,
+    table,
+    points: Float[Array, "N 3"],
+    normals: Float[Array, "N 3"],
+) -> Readout:
+    """The :class:`Readout` of receivers ``points``/``normals`` (fixed) for the scene's one occluder,
+    whose BSV at any pose has ``bsv``'s centre and grid (its coefficients and shell radius are not
+    read). ``lighting`` is :func:`jshadow.scene.scene_lighting`'s, ``table`` the scene's occlusion
+    table. The functionals are those :func:`jshadow.scene.combine` forms, per receiver:
+    ``M_env[c] T`` for the environment and ``T ⊛ cap_j`` for sphere light j (``T`` the clamped
+    cosine about the normal, ``cap_j`` the light's unit-radiance SH). A light counts the occluder
+    only at receivers nearer to the occluder's centre than to the light's, as ``combine`` does."""
+    n = scene.method.sh_bands
+    dtype = points.dtype
+    ratio = scene.method.shading == "ratio"
+    t_n, p_n = bsv.coeffs.shape[0], bsv.coeffs.shape[1]
+    (i0, j0, j1, wa, wb), (cp, sp, ct, st), d, inv_d = field_cells(bsv, points)
+    rows, weights = [], []
+    for i, w_i in ((i0, 1.0 - wa), (jnp.minimum(i0 + 1, t_n - 1), wa)):  # as field_corners
+        for j, w_j in ((j0, 1.0 - wb), (j1, wb)):
+            weights.append((w_i * w_j).astype(bsv.coeffs.dtype))
+            rows.append(i * p_n + j)
+    t = sh.clamped_cosine(normals, n)  # (N, n²)
+    funcs, unocc, exact, colours, dist_l = [], [], [], [], []
+    if scene.environment is not None:
+        l_env = lighting.env_sh.astype(dtype)  # (n², 3)
+        m_env = sh.product_matrix(l_env.T)  # (3, n², n²)
+        funcs += list(jnp.einsum("cik,rk->cri", m_env, t))  # 3 × (N, n²)
+        unocc += list((t @ l_env).T)
+        ex = environment_irradiance(lighting.env_map, normals).astype(dtype) if ratio else t @ l_env
+        exact += list(ex.T)
+        colours += list(jnp.eye(3, dtype=dtype))
+        dist_l += [jnp.full(d.shape, jnp.inf, dtype)] * 3
+    one = jnp.ones((1,), dtype)
+    for light in scene.lights:
+        cap = sphere_light_sh(light.center, light.radius, one, points, n)[..., 0]  # (N, n²)
+        funcs.append(sh.sh_product(t, cap))
+        u = jnp.sum(t * cap, -1)  # n-band unoccluded
+        unocc.append(u)
+        if ratio:
+            u = sphere_light_irradiance(light.center, light.radius, one, points, normals)[:, 0]
+        exact.append(u)
+        colours.append(jnp.asarray(light.radiance, dtype))
+        dist_l.append(safe_norm(points - light.center))
+    if not funcs:
+        raise ValueError("prepare_readout: the scene has no light")
+    w = jnp.stack(funcs)  # (C, N, n²) world-frame functionals
+    light_distance = jnp.stack(dist_l)  # (C, N)
+    use = d < light_distance  # the occluder is in front of the light (always, for the environment)
+
+    def rotate(s):
+        return sh.rotate_zyz_cs(s, (cp, sp), (ct, st), prepared=True)
+
+    _, pull = jax.vjp(rotate, jnp.zeros_like(t))
+    local = jnp.stack([pull(wc)[0] for wc in w])  # Rᵀ w: (C, N, n²)
+    unit = math.sqrt(4.0 * math.pi)
+    return Readout(
+        rows=jnp.stack(rows).astype(jnp.int32),
+        weights=jnp.stack(weights),
+        inv_d=inv_d,
+        vectors=jnp.transpose(jnp.where(use[..., None], local, 0.0), (0, 2, 1)),
+        offset=jnp.where(use, 0.0, unit * w[..., 0]),
+        unit=unit * w[..., 0],
+        world=jnp.transpose(w, (0, 2, 1)),
+        light_distance=light_distance,
+        points=points,
+        unoccluded=jnp.stack(unocc),
+        exact=jnp.stack(exact).astype(dtype),
+        colours=jnp.stack(colours),
+        center=bsv.center,
+        ratio=ratio,
+    )
+
+
+def shade_readout(
+    readout: Readout, bsv: BSV, table, n: int, albedo: Float[Array, "3"], moved: bool = False
+) -> tuple[Float[Array, "N 3"], Float[Array, "N 3"]]:
+    """Irradiance and outgoing radiance (N, 3) of the readout's receivers for a pose's ``bsv``, with
+    the scene's occlusion ``table`` and ``n`` lighting bands (``n`` and ``moved`` static).
+
+    ``moved=False``: the BSV has the centre and grid of :func:`prepare_readout`'s (not checked
+    here); the frame reads the field's table at the prepared cells. ``moved=True``: the centre
+    moved (a deforming mesh's bounding sphere follows its shape), so the field is evaluated as on
+    the general path (:func:`jshadow.field.bsv_visibility_and_distance`) and only the
+    combination's functionals are the prepared ones, in the world frame."""
+    if moved:
+        vis, d = bsv_visibility_and_distance(bsv, table, readout.points, n)
+        q = _dots(vis.T, readout.world, 0.0)
+        return _finish(readout, jnp.where(d < readout.light_distance, q, readout.unit), albedo)
+    flat = field_nodes(bsv, table, n)  # (K·T·P, n²)
+    t_n, p_n = bsv.coeffs.shape[0], bsv.coeffs.shape[1]
+    inv_d = readout.inv_d
+    k = jnp.where(inv_d > 0, bsv.shell_radius * inv_d, jnp.asarray(1e6, inv_d.dtype))  # as field_corners
+    t0, wk = mk_bracket(table, k)
+    wk = wk.astype(flat.dtype)
+    base = t0 * (t_n * p_n)
+    s = 0.0
+    for dt, w_t in ((0, 1.0 - wk), (t_n * p_n, wk)):
+        for row, w in zip(readout.rows, readout.weights, strict=True):
+            s = s + (w_t * w)[:, None] * flat[base + dt + row]
+    q = _dots(s.T, readout.vectors, readout.offset)
+    return _finish(readout, jnp.where(mk_in_range(table, k), q, readout.unit), albedo)  # beyond: V = 1
+
+
+def _dots(s: Float[Array, "n2 N"], vectors: Float[Array, "C n2 N"], offset) -> Float[Array, "C N"]:
+    """``offset + Σ_i s[i] · vectors[:, i]``: C dot products of n² per receiver, unrolled over n²
+    (an einsum of (N, n²)·(N, n², C) was 2.5× slower on XLA:CPU in a throwaway timing)."""
+    q = offset
+    for i in range(s.shape[0]):
+        q = q + s[i] * vectors[:, i]
+    return q
+
+
+def _finish(
+    readout: Readout, q: Float[Array, "C N"], albedo
+) -> tuple[Float[Array, "N 3"], Float[Array, "N 3"]]:
+    """The functionals' values → irradiance and radiance (N, 3), shaded as :func:`jshadow.scene.combine`."""
+    q = _shadow_ratio(q, readout.unoccluded, readout.exact) if readout.ratio else q
+    e = q.T @ readout.colours  # (N, 3)
+    return e, e * (albedo / math.pi)
