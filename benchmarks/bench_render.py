@@ -13,7 +13,10 @@ Rows:
   shading time at 80², 160² and 320² plane receivers: marginal cost per receiver and fixed cost;
 * shading cost per receiver per occluder: the one-call shading time (placing the receivers, field
   evaluation, combination) / (receivers × occluders), receivers counting the plane's and, with
-  self-shadowing, the occluders' vertices;
+  self-shadowing, the occluders' vertices; for the renderer's default (read out of the field's
+  table where the geometry does not move, :mod:`jshadow.readout`; how many timed frames were, and
+  how many of those had a moving bounding-sphere centre) and for the general path
+  (``static_readout=False``), in the same alternating blocks;
 * many occluders: 1, 4 and 16 sphere occluders through the BSV path over a 160×160 plane;
 * throughput of the animated bunny with :func:`jshadow.render_frames` on one and two host threads
   (whole frames, wall time per frame including the host copies of the results).
@@ -64,27 +67,37 @@ def throughput(scene, frames):
 
 
 def run_frames(scene, frames, sphere_path="analytic", blocks=4):
-    """Warm medians of the one-call shading (:class:`Renderer`'s default) and of the same frames
-    with ``split_stages=True`` (field and combination timed separately): ``blocks`` blocks of
-    ``frames`` frames per renderer, alternating, frames in sequence within a block as a render loop
-    runs them. (This VM drifts by ±40 % within minutes, so a single block of each gave either
-    renderer ahead; alternating frame by frame slowed both: each found the caches filled by the
-    other's buffers.)"""
+    """Warm medians of :class:`Renderer`'s default (the whole shading in one call, read out of the
+    field's table where the geometry does not move: :mod:`jshadow.readout`), of the general
+    one-call shading (``static_readout=False``) and of the same frames with ``split_stages=True``
+    (field and combination timed separately): ``blocks`` blocks of ``frames`` frames per renderer,
+    alternating, frames in sequence within a block as a render loop runs them. (This VM drifts by
+    ±40 % within minutes, so a single block of each gave either renderer ahead; alternating frame by
+    frame slowed both: each found the caches filled by the other's buffers.)"""
     rend = Renderer(scene, sphere_path=sphere_path)
+    general = Renderer(scene, sphere_path=sphere_path, static_readout=False)
     split = Renderer(scene, sphere_path=sphere_path, split_stages=True)
     t0 = time.perf_counter()
     res, first = rend.frame(0)
     first_s = time.perf_counter() - t0
+    general.frame(0)
     split.frame(0)
     sel = [(i + 1) % max(scene.n_frames, 1) for i in range(frames)]
-    rows, split_rows = [], []
+    rows, general_rows, split_rows = [], [], []
+    read_before = rend.readout_frames
+    moved_before = rend.readout_moved_frames
     for _ in range(blocks):
         rows += [rend.frame(f)[1] for f in sel]
+        general_rows += [general.frame(f)[1] for f in sel]
         split_rows += [split.frame(f)[1] for f in sel]
     med = {k: float(np.median([r[k] for r in rows])) for k in rows[0]}
     return {
         "compile_s": max(first_s - med["total_ms"] / 1e3, 0.0),
         "median_ms": med,
+        "readout_frames": rend.readout_frames - read_before,  # of the timed frames
+        "readout_moved_frames": rend.readout_moved_frames - moved_before,
+        "readout_reason": rend.readout_reason,
+        "general_median_ms": {k: float(np.median([r[k] for r in general_rows])) for k in general_rows[0]},
         "split_median_ms": {k: float(np.median([r[k] for r in split_rows])) for k in split_rows[0]},
         "fps": 1e3 / med["total_ms"],
         "receivers": int(res.points.shape[0]),  # plane and, with self-shadowing, occluder vertices
@@ -179,8 +192,10 @@ def main():
             scene = build_scene(config_from_dict(d, source=str(c), root=pathlib.Path(c).parent))
             r = run_frames(scene, args.frames)
             n_occ = max(len(scene.occluders), 1)
-            r["shading_us_per_receiver_per_occluder"] = (
-                1e3 * r["median_ms"]["shading_ms"] / (r["receivers"] * n_occ)
+            per = r["receivers"] * n_occ
+            r["shading_us_per_receiver_per_occluder"] = 1e3 * r["median_ms"]["shading_ms"] / per
+            r["general_shading_us_per_receiver_per_occluder"] = (
+                1e3 * r["general_median_ms"]["shading_ms"] / per
             )
             name = pathlib.Path(c).name + ("" if label == "default" else f" [{label}]")
             out["configs"][name] = r
@@ -189,6 +204,10 @@ def main():
                 f"{name:40s} {r['receivers']:7d} rec  compile {r['compile_s']:5.1f} s  "
                 + "  ".join(f"{k} {v:7.2f}" for k, v in r["median_ms"].items())
                 + f"  fps {r['fps']:6.1f}  shade {r['shading_us_per_receiver_per_occluder']:.3f} µs/rec/occ"
+                + f" (readout {r['readout_frames']}/{r['frames_timed']} frames,"
+                + f" {r['readout_moved_frames']} moved;"
+                + f" general {r['general_median_ms']['shading_ms']:.2f} ms,"
+                + f" {r['general_shading_us_per_receiver_per_occluder']:.3f} µs/rec/occ)"
                 + f"  | split: field {sp['field_ms']:.2f} combine {sp['combine_ms']:.2f}"
                 + f" total {sp['total_ms']:.2f}",
                 flush=True,
