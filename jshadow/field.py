@@ -42,6 +42,9 @@ __all__ = [
     "field_nodes",
     "field_corners",
     "field_cells",
+    "field_bracket",
+    "cell_corners",
+    "read_nodes",
     "frame_to_world",
     "frame_to_world_cs",
     "sphere_visibility_sh",
@@ -96,9 +99,9 @@ def bsv_visibility_sh(
 
     Steps 2 and 3 of the module docstring are both linear, so they are done in the other order:
     every tabulated ``M_{k_t}`` — with the frame's sign flips and the rotation's constant first
-    product folded in (:func:`_node_matrices`) — is applied once to every BSV sample (a
-    (K, T, P, n²) array; 1.5 M multiply-adds for 16 × 240 samples, 25 → 16 coefficients) and each
-    receiver interpolates that array trilinearly in (k, θ, φ) — the same numbers as interpolating
+    product folded in (:func:`_node_matrices`) — is applied once to every BSV sample (1.5 M
+    multiply-adds for 16 × 240 samples, 25 → 16 coefficients; :func:`field_nodes`) and each
+    receiver interpolates that table trilinearly in (k, θ, φ) — the same numbers as interpolating
     the BSV and M_k separately, without a matrix per receiver. The angles come from
     :func:`jshadow._numerics.fast_atan2` and the frame rotation from the direction's components
     (:func:`jshadow.sh.rotate_zyz_cs`, ``prepared=True``), so no other transcendental function is
@@ -114,50 +117,87 @@ def bsv_visibility_and_distance(
     centre, which the field computes anyway (the combination orders entities by it; a separate
     ``norm`` of the (N, 3) offsets cost XLA:CPU about 0.2 ms per 27501 receivers, BENCHMARKS.md)."""
     n = sh.sh_bands_of(bsv.coeffs.shape[-1]) if bands is None else int(bands)
-    flat = field_nodes(bsv, table, n)
-    rows, weights, rotation, in_range, d = field_corners(bsv, table, points)
-    s_d = 0.0
-    for row, w in zip(rows, weights, strict=True):
-        s_d = s_d + w[..., None] * flat[row]
+    pairs = field_nodes(bsv, table, n)
+    rows, weights, wk, rotation, in_range, d = field_corners(bsv, table, points)
+    s_d = read_nodes(pairs, rows, weights, wk, n)
     cos_phi, sin_phi, cos_theta, sin_theta = rotation
     s_w = sh.rotate_zyz_cs(s_d, (cos_phi, sin_phi), (cos_theta, sin_theta), prepared=True)
     vis = jnp.where(in_range[..., None], s_w, unit_visibility(d.shape, n, s_w.dtype))
     return vis, d
 
 
-def field_nodes(bsv: BSV, table: MkTable, n: int) -> Float[Array, "KTP n2"]:
-    """The field's interpolation table (K·T·P, n²) of one BSV: every tabulated ``M_{k_t}`` (truncated
-    to n bands), the frame's signs and the rotation's constant first product applied to every BSV
-    sample (:func:`bsv_visibility_and_distance`). Row ``(t·T + i)·P + j`` belongs to distance k_t
-    and shell point (θ_i, φ_j). Linear in the BSV's coefficients."""
-    t_n, p_n, _ = bsv.coeffs.shape
-    mats = _node_matrices(table, bsv.coeffs.shape[-1], n, bsv.coeffs.dtype)  # (K, nb², n²)
-    # (K·T·P, n²): M_k, the frame's signs and D(Q)ᵀ at every sample and k_t
-    flat = jnp.matmul(bsv.coeffs.reshape(1, t_n * p_n, -1), mats, precision=jax.lax.Precision.HIGHEST)
-    return flat.reshape(-1, n * n)
+def field_nodes(bsv: BSV, table: MkTable, n: int) -> Float[Array, "TPK 2n2"]:
+    """The field's interpolation table of one BSV, in pairs of neighbouring distances: every
+    tabulated ``M_{k_t}`` (truncated to n bands), the frame's signs and the rotation's constant first
+    product applied to every BSV sample (:func:`bsv_visibility_and_distance`), one GEMM of the (T·P,
+    nb²) samples with the (nb², K·n²) matrices. Row ``(i·P + j)·(K − 1) + t`` holds shell point
+    (θ_i, φ_j) at k_t and at k_{t+1} side by side (2n²): a receiver's bracket [k_t, k_{t+1}] is one
+    contiguous row per angular corner, four gathers instead of eight (the airplane's frame: XLA:CPU
+    gathers were the largest kernel of its shading, BENCHMARKS.md). Linear in the coefficients."""
+    t_n, p_n, nb2 = bsv.coeffs.shape
+    mats = _node_matrices(table, nb2, n, bsv.coeffs.dtype)  # (K, nb², n²)
+    k_n = mats.shape[0]
+    wide = jnp.transpose(mats, (1, 0, 2)).reshape(nb2, k_n * n * n)
+    flat = jnp.matmul(bsv.coeffs.reshape(t_n * p_n, nb2), wide, precision=jax.lax.Precision.HIGHEST)
+    flat = flat.reshape(t_n * p_n, k_n, n * n)
+    return jnp.concatenate([flat[:, :-1], flat[:, 1:]], -1).reshape(t_n * p_n * (k_n - 1), 2 * n * n)
+
+
+def read_nodes(pairs, rows, weights, wk, n: int) -> Float[Array, "... n2"]:
+    """A receiver's n² coefficients from the pair table of :func:`field_nodes`: the weighted sum of
+    its four rows (:func:`field_corners`), then linear in k between each row's two halves."""
+    s = 0.0
+    for row, w in zip(rows, weights, strict=True):
+        s = s + w[..., None] * pairs[row]
+    wk = wk[..., None]
+    return (1.0 - wk) * s[..., : n * n] + wk * s[..., n * n :]
 
 
 def field_corners(bsv: BSV, table: MkTable, points: Float[Array, "... 3"]) -> tuple:
     """Where receivers read the field's table (:func:`field_nodes`), from the geometry alone.
 
-    Returns ``(rows, weights, rotation, in_range, d)``: the eight corners of each receiver's
-    trilinear cell in (k, θ, φ) as eight ``(...)`` int32 row indices and eight weights (summing to
-    1), the rotation's ``(cos φ, sin φ, cos θ, sin θ)`` to the world frame
+    Returns ``(rows, weights, wk, rotation, in_range, d)``: the four angular corners of each
+    receiver's cell as four ``(...)`` int32 rows of the pair table (at the bracket's lower distance
+    k_t) and their bilinear weights (summing to 1), the weight ``wk`` of k_{t+1} within the
+    bracket, the rotation's ``(cos φ, sin φ, cos θ, sin θ)`` to the world frame
     (:func:`jshadow.sh.rotate_zyz_cs` with ``prepared=True``), whether the receiver is within the
     table's range (else its visibility is 1), and its distance to the centre. Only the BSV's
     centre, shell radius and grid shape are read, not its coefficients; the shell radius only
-    through k (:func:`field_cells` is the rest)."""
-    t_n, p_n = bsv.coeffs.shape[0], bsv.coeffs.shape[1]
-    (i0, j0, j1, wa, wb), rotation, d, inv_d = field_cells(bsv, points)
-    k = jnp.where(inv_d > 0, bsv.shell_radius * inv_d, jnp.asarray(1e6, d.dtype))  # d = 0: beyond the table
-    t0, wk = mk_bracket(table, k)
+    through k (:func:`field_cells` is the rest, :func:`field_bracket` this part)."""
+    cell, rotation, d, inv_d = field_cells(bsv, points)
+    rows, weights = cell_corners(cell, bsv.coeffs.shape[0], bsv.coeffs.shape[1])
+    t0, wk, in_range = field_bracket(table, bsv.shell_radius, inv_d)
+    k_pairs = table.ks.shape[0] - 1
+    rows = [r * k_pairs + t0 for r in rows]
+    return (
+        rows,
+        [w.astype(bsv.coeffs.dtype) for w in weights],
+        wk.astype(bsv.coeffs.dtype),
+        rotation,
+        in_range,
+        d,
+    )
+
+
+def cell_corners(cell, t_n: int, p_n: int) -> tuple[list, list]:
+    """The four corners ``i·P + j`` of a bilinear cell ``(i0, j0, j1, wa, wb)`` of
+    :func:`field_cells` and their weights (the θ row i0 + 1 clamped: one ring has wa = 0)."""
+    i0, j0, j1, wa, wb = cell
     rows, weights = [], []
-    for dt, w_t in ((0, 1.0 - wk), (1, wk)):
-        for i, w_i in ((i0, 1.0 - wa), (jnp.minimum(i0 + 1, t_n - 1), wa)):  # one ring: wa = 0
-            for j, w_j in ((j0, 1.0 - wb), (j1, wb)):
-                weights.append((w_t * w_i * w_j).astype(bsv.coeffs.dtype))
-                rows.append(((t0 + dt) * t_n + i) * p_n + j)
-    return rows, weights, rotation, mk_in_range(table, k), d
+    for i, w_i in ((i0, 1.0 - wa), (jnp.minimum(i0 + 1, t_n - 1), wa)):
+        for j, w_j in ((j0, 1.0 - wb), (j1, wb)):
+            weights.append(w_i * w_j)
+            rows.append(i * p_n + j)
+    return rows, weights
+
+
+def field_bracket(table: MkTable, shell_radius, inv_d) -> tuple:
+    """``(t0, wk, in_range)`` of the ratios ``k = R/d = shell_radius · inv_d`` (beyond the table for a
+    receiver at the centre, ``inv_d = 0``): :func:`jshadow.scaling.mk_bracket` and
+    :func:`jshadow.scaling.mk_in_range`."""
+    k = jnp.where(inv_d > 0, shell_radius * inv_d, jnp.asarray(1e6, inv_d.dtype))
+    t0, wk = mk_bracket(table, k)
+    return t0, wk, mk_in_range(table, k)
 
 
 def field_cells(bsv: BSV, points: Float[Array, "... 3"]) -> tuple:

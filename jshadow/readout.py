@@ -5,28 +5,30 @@ functionals of its world-frame visibility ``v``: ``⟨v, w_c⟩`` for the enviro
 channels (``w_c = M_env[c] T``, :func:`jshadow.scene.combine`) and ``⟨v, T ⊛ cap_j⟩`` for each
 sphere light j, each then finished by the shading (ratio or product) and the light's colour. The
 field itself is linear too (:func:`jshadow.field.bsv_visibility_and_distance`): ``v = R · s`` with
-``s`` the trilinear interpolation of eight rows of the frame's node table
-(:func:`jshadow.field.field_nodes`) and ``R`` the rotation from the receiver's local frame to the
-world. So
+``s`` the trilinear interpolation of the frame's node table (:func:`jshadow.field.field_nodes`) and
+``R`` the rotation from the receiver's local frame to the world. So
 
     ⟨v, w⟩ = ⟨R s, w⟩ = ⟨s, Rᵀ w⟩ = Σ_corners weight · ⟨node_row, Rᵀ w⟩.
 
-Everything but the node table depends on the geometry alone: the eight rows and weights (the
-receiver's position relative to the sampling shell), the rotation, and the functionals ``w`` (the
-receiver's normal, the lights' positions, the environment). When those do not change between frames
-— receivers that do not move, an occluder that deforms in place inside its fixed bounding sphere,
-lights that stay where they are, which is the deformable-shadow-fields paper's setting (Sec. 4.3) —
-they are computed once (:func:`prepare_readout`), and a frame is the node table's GEMM, eight
-gathered rows per receiver and ``C`` dot products of n² (:func:`shade_readout`), instead of the
-angles, the per-receiver SH rotation and the combination's products. The numbers are those of the
+Everything but the node table depends on the geometry alone: the angular cell and its weights (the
+receiver's direction from the occluder's centre), its distance, the rotation, and the functionals
+``w`` (the receiver's normal, the lights' positions, the environment). When those do not change
+between frames — receivers that do not move, an occluder that deforms about a fixed bounding-sphere
+centre, lights that stay where they are, the deformable-shadow-fields paper's setting (Sec. 4.3) —
+they are computed once (:func:`prepare_readout`), and a frame is the node table's GEMM, the bracket
+of k = R/d (a deforming occluder's shell radius R changes from pose to pose), four gathered rows
+per receiver and ``C`` dot products of n² (:func:`shade_readout`), instead of the angles, the
+per-receiver SH rotation and the combination's products. The numbers are those of the
 general path up to float rounding (the rotation is applied to the functionals instead of the
 visibility; ``tests/test_readout.py``), and the saving is measured in BENCHMARKS.md ("Rendering").
 
 Scope (:func:`readout_unsupported` names what rules it out): exactly one occluder, with a BSV (a
 mesh, or a sphere on the "bsv" path); no ray-cast own-vertex rows, occlusion images or environment
 lights; receivers and lights fixed (the scene's positions cannot be animated; a deforming mesh's own
-vertices move, so ``self_shadow`` rules out a deforming mesh). Several occluders multiply their
-visibilities (an SH product), which is not linear in each.
+vertices move, so ``self_shadow`` rules out a deforming mesh); a bounding-sphere centre that stays
+where it is (a deformation that is not symmetric about the centre moves the centre of the deformed
+mesh's bounding box, as the airplane's bend does). Several occluders multiply their visibilities (an
+SH product), which is not linear in each.
 """
 
 from __future__ import annotations
@@ -41,9 +43,14 @@ from jaxtyping import Array, Float, Int
 from . import sh
 from ._numerics import safe_norm
 from .entities import Scene
-from .field import bsv_visibility_and_distance, field_cells, field_nodes
+from .field import (
+    cell_corners,
+    field_bracket,
+    field_cells,
+    field_nodes,
+    read_nodes,
+)
 from .lights import environment_irradiance, sphere_light_irradiance, sphere_light_sh
-from .scaling import mk_bracket, mk_in_range
 from .scene import _shadow_ratio
 from .visibility import BSV
 
@@ -57,22 +64,17 @@ class Readout(eqx.Module):
     sphere light.
 
     Attributes:
-        rows: (4, N) int32 rows ``i·P + j`` of the BSV's θ×φ grid at the corners of each
-            receiver's cell (:func:`jshadow.field.field_cells`); the field's table holds them once
-            per tabulated distance k_t, T·P rows apart (:func:`jshadow.field.field_nodes`).
+        rows: (4, N) int32 points ``i·P + j`` of the BSV's θ×φ grid at the corners of each
+            receiver's cell (:func:`jshadow.field.cell_corners`); the field's pair table holds
+            point r's bracket [k_t, k_{t+1}] in row ``r·(K − 1) + t`` (:func:`jshadow.field.field_nodes`).
         weights: (4, N) their bilinear weights.
         inv_d: (N,) 1 / the receiver's distance to the centre (0 at the centre): a deforming
             occluder's shell radius R changes from pose to pose, and with it k = R/d, so the
-            bracket in k is found per frame (N comparisons against the table's K ratios).
+            bracket in k is found per frame (:func:`jshadow.field.field_bracket`).
         vectors: (C, n², N) the functionals in each receiver's local frame, ``Rᵀ w`` (zero where
             a light is nearer than the occluder, which then does not shadow it).
         offset: (C, N) the functional's value for visibility 1 where ``vectors`` is zero, else 0.
         unit: (C, N) the functional's value for visibility 1 (receivers beyond the table's range).
-        world: (C, n², N) the functionals in the world frame, for poses whose bounding sphere's
-            centre moved (:func:`shade_readout` with ``moved``).
-        light_distance: (C, N) each functional's light's distance from the receiver (∞ for the
-            environment): a light counts the occluder only where the occluder's centre is nearer.
-        points: (N, 3) the receivers.
         unoccluded: (C, N) the n-band unoccluded value (the ratio's denominator).
         exact: (C, N) the exact unoccluded irradiance (ratio shading; the unoccluded otherwise).
         colours: (C, 3) the colour each functional's finished value is multiplied by: the unit
@@ -87,9 +89,6 @@ class Readout(eqx.Module):
     vectors: Float[Array, "C n2 N"]
     offset: Float[Array, "C N"]
     unit: Float[Array, "C N"]
-    world: Float[Array, "C n2 N"]
-    light_distance: Float[Array, "C N"]
-    points: Float[Array, "N 3"]
     unoccluded: Float[Array, "C N"]
     exact: Float[Array, "C N"]
     colours: Float[Array, "C 3"]
@@ -139,13 +138,8 @@ def prepare_readout(
     n = scene.method.sh_bands
     dtype = points.dtype
     ratio = scene.method.shading == "ratio"
-    t_n, p_n = bsv.coeffs.shape[0], bsv.coeffs.shape[1]
-    (i0, j0, j1, wa, wb), (cp, sp, ct, st), d, inv_d = field_cells(bsv, points)
-    rows, weights = [], []
-    for i, w_i in ((i0, 1.0 - wa), (jnp.minimum(i0 + 1, t_n - 1), wa)):  # as field_corners
-        for j, w_j in ((j0, 1.0 - wb), (j1, wb)):
-            weights.append((w_i * w_j).astype(bsv.coeffs.dtype))
-            rows.append(i * p_n + j)
+    cell, (cp, sp, ct, st), d, inv_d = field_cells(bsv, points)
+    rows, weights = cell_corners(cell, bsv.coeffs.shape[0], bsv.coeffs.shape[1])
     t = sh.clamped_cosine(normals, n)  # (N, n²)
     funcs, unocc, exact, colours, dist_l = [], [], [], [], []
     if scene.environment is not None:
@@ -182,14 +176,11 @@ def prepare_readout(
     unit = math.sqrt(4.0 * math.pi)
     return Readout(
         rows=jnp.stack(rows).astype(jnp.int32),
-        weights=jnp.stack(weights),
+        weights=jnp.stack(weights).astype(bsv.coeffs.dtype),
         inv_d=inv_d,
         vectors=jnp.transpose(jnp.where(use[..., None], local, 0.0), (0, 2, 1)),
         offset=jnp.where(use, 0.0, unit * w[..., 0]),
         unit=unit * w[..., 0],
-        world=jnp.transpose(w, (0, 2, 1)),
-        light_distance=light_distance,
-        points=points,
         unoccluded=jnp.stack(unocc),
         exact=jnp.stack(exact).astype(dtype),
         colours=jnp.stack(colours),
@@ -199,33 +190,17 @@ def prepare_readout(
 
 
 def shade_readout(
-    readout: Readout, bsv: BSV, table, n: int, albedo: Float[Array, "3"], moved: bool = False
+    readout: Readout, bsv: BSV, table, n: int, albedo: Float[Array, "3"]
 ) -> tuple[Float[Array, "N 3"], Float[Array, "N 3"]]:
-    """Irradiance and outgoing radiance (N, 3) of the readout's receivers for a pose's ``bsv``, with
-    the scene's occlusion ``table`` and ``n`` lighting bands (``n`` and ``moved`` static).
-
-    ``moved=False``: the BSV has the centre and grid of :func:`prepare_readout`'s (not checked
-    here); the frame reads the field's table at the prepared cells. ``moved=True``: the centre
-    moved (a deforming mesh's bounding sphere follows its shape), so the field is evaluated as on
-    the general path (:func:`jshadow.field.bsv_visibility_and_distance`) and only the
-    combination's functionals are the prepared ones, in the world frame."""
-    if moved:
-        vis, d = bsv_visibility_and_distance(bsv, table, readout.points, n)
-        q = _dots(vis.T, readout.world, 0.0)
-        return _finish(readout, jnp.where(d < readout.light_distance, q, readout.unit), albedo)
-    flat = field_nodes(bsv, table, n)  # (K·T·P, n²)
-    t_n, p_n = bsv.coeffs.shape[0], bsv.coeffs.shape[1]
-    inv_d = readout.inv_d
-    k = jnp.where(inv_d > 0, bsv.shell_radius * inv_d, jnp.asarray(1e6, inv_d.dtype))  # as field_corners
-    t0, wk = mk_bracket(table, k)
-    wk = wk.astype(flat.dtype)
-    base = t0 * (t_n * p_n)
-    s = 0.0
-    for dt, w_t in ((0, 1.0 - wk), (t_n * p_n, wk)):
-        for row, w in zip(readout.rows, readout.weights, strict=True):
-            s = s + (w_t * w)[:, None] * flat[base + dt + row]
+    """Irradiance and outgoing radiance (N, 3) of the readout's receivers for a pose's ``bsv``
+    (same centre and grid as at :func:`prepare_readout`, not checked here; any shell radius), with
+    the scene's occlusion ``table`` and ``n`` (static) lighting bands."""
+    pairs = field_nodes(bsv, table, n)
+    t0, wk, in_range = field_bracket(table, bsv.shell_radius, readout.inv_d)
+    rows = [r * (table.ks.shape[0] - 1) + t0 for r in readout.rows]
+    s = read_nodes(pairs, rows, readout.weights, wk.astype(pairs.dtype), n)
     q = _dots(s.T, readout.vectors, readout.offset)
-    return _finish(readout, jnp.where(mk_in_range(table, k), q, readout.unit), albedo)  # beyond: V = 1
+    return _finish(readout, jnp.where(in_range, q, readout.unit), albedo)  # beyond the table: V = 1
 
 
 def _dots(s: Float[Array, "n2 N"], vectors: Float[Array, "C n2 N"], offset) -> Float[Array, "C N"]:

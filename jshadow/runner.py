@@ -158,7 +158,31 @@ def _with_receivers(scene, out):
 
 _place_and_shade = eqx.filter_jit(_place_and_shade_frame)
 _prepare_readout = eqx.filter_jit(prepare_readout)
-_shade_readout = jax.jit(shade_readout, static_argnums=(3, 5))
+_shade_readout = jax.jit(shade_readout, static_argnums=(3,))
+
+
+def _centre_moved(center, reference: np.ndarray, shell_radius) -> bool:
+    """Whether a bounding-sphere centre differs from ``reference`` by more than rounding (the box
+    centre of a deformation symmetric about it can differ in the last bits; that changes the field
+    by about as much as the float rounding of its evaluation does, except at receivers within
+    rounding of the centre, whose direction to it is undefined anyway)."""
+    shift = np.abs(np.asarray(center) - reference).max()
+    return bool(shift > eps(reference.dtype) * float(np.abs(reference).max() + np.asarray(shell_radius)))
+
+
+def _centre_moves(occ, bsv) -> bool:
+    """Whether a deforming mesh's bounding-sphere centre moves: its deformed vertices' box centre
+    (:func:`jshadow.geometry.bounding_sphere`, as its BSV takes it) at times 0, 1/3, 2/3 and 1
+    against the BSV's. False for shapes that do not change."""
+    if shape_is_static(occ):
+        return False
+    from .geometry import bounding_sphere
+
+    ref = np.asarray(bsv.center)
+    return any(
+        _centre_moved(bounding_sphere(occ.vertices(t))[0], ref, bsv.shell_radius)
+        for t in (0.0, 1 / 3, 2 / 3, 1.0)
+    )
 
 
 _FLAT_SHADERS: dict = {}
@@ -224,9 +248,9 @@ class Renderer:
             (:mod:`jshadow.readout`): prepared at the first frame of an animation (at the second
             call of a one-frame scene), used for every frame whose occluder keeps its bounding
             sphere. Same numbers as the general path up to rounding. Not with ``split_stages``,
-            ``devices`` or frames of more than ``chunk`` receivers. ``readout_frames`` counts the
-            frames it shaded, ``readout_moved_frames`` those among them whose bounding sphere's
-            centre had moved (the field evaluated anew, the combination's functionals reused);
+            ``devices`` or frames of more than ``chunk`` receivers, nor for an occluder whose
+            bounding sphere's centre moves (sampled at four times of the animation before
+            preparing, checked every frame). ``readout_frames`` counts the frames it shaded;
             ``readout_reason`` says why it does not apply (None if it does).
     """
 
@@ -281,7 +305,6 @@ class Renderer:
         self._readout = None
         self.readout_reason: str | None = None
         self.readout_frames = 0
-        self.readout_moved_frames = 0
         self._frames_shaded = 0
 
     def _readout_for(self, bsvs, own, images):
@@ -295,6 +318,9 @@ class Renderer:
             if reason is not None:
                 self.readout_reason, self._readout = reason, False
                 return None
+            if _centre_moves(scene.occluders[0], bsvs[0]):
+                self.readout_reason, self._readout = "the bounding sphere's centre moves", False
+                return None
             if scene.n_frames <= 1 and self._frames_shaded == 0:
                 return None  # a single frame: the general path; prepare if it is rendered again
             points, normals = receivers_at_time(scene, 0.0)
@@ -302,16 +328,10 @@ class Renderer:
             ro = _prepare_readout(scene, bsvs[0], self._lighting, table, points, normals)
             self._readout = (ro, points, normals, np.asarray(ro.center))
         ro, points, normals, center = self._readout
-        # a deforming mesh's bounding sphere may follow its shape: then the field is evaluated anew.
-        # A shift within rounding (the box centre of a symmetric deformation) is no move: it changes
-        # the field by about as much as the float rounding of its evaluation does
-        shift = np.abs(np.asarray(bsvs[0].center) - center).max()
-        return (
-            ro,
-            points,
-            normals,
-            bool(shift > eps(center.dtype) * float(np.abs(center).max() + bsvs[0].shell_radius)),
-        )
+        if _centre_moved(bsvs[0].center, center, bsvs[0].shell_radius):  # a check the sampling missed
+            self.readout_reason, self._readout = "the bounding sphere's centre moves", False
+            return None
+        return ro, points, normals
 
     def _bsvs(self, t):
         out = []
@@ -450,13 +470,11 @@ class Renderer:
         readout = self._readout_for(bsvs, own, images) if one_call else None
         self._frames_shaded += 1
         if readout is not None:
-            ro, points, normals, moved = readout
+            ro, points, normals = readout
             scene, table = self.scene, occlusion_table(self.scene)
-            args = (ro, bsvs[0], table, scene.method.sh_bands, scene.receivers.albedo, moved)
-            e, rad = _shade_readout(*args)
+            e, rad = _shade_readout(ro, bsvs[0], table, scene.method.sh_bands, scene.receivers.albedo)
             jax.block_until_ready((e, rad))
             self.readout_frames += 1
-            self.readout_moved_frames += moved
             t2 = time.perf_counter()
             res = RenderResult(points=points, normals=normals, irradiance=e, radiance=rad)
             times = {**first, "shading_ms": 1e3 * (t2 - t1)}
