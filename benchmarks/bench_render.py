@@ -14,8 +14,8 @@ Rows:
 * shading cost per receiver per occluder: the one-call shading time (placing the receivers, field
   evaluation, combination) / (receivers × occluders), receivers counting the plane's and, with
   self-shadowing, the occluders' vertices; for the renderer's default (read out of the field's
-  table where the geometry does not move, :mod:`jshadow.readout`; how many timed frames were, and
-  how many of those had a moving bounding-sphere centre) and for the general path
+  table where the geometry does not move, :mod:`jshadow.readout`; how many timed frames were, or
+  why not) and for the general path
   (``static_readout=False``), in the same alternating blocks;
 * many occluders: 1, 4 and 16 sphere occluders through the BSV path over a 160×160 plane;
 * throughput of the animated bunny with :func:`jshadow.render_frames` on one and two host threads
@@ -85,7 +85,6 @@ def run_frames(scene, frames, sphere_path="analytic", blocks=4):
     sel = [(i + 1) % max(scene.n_frames, 1) for i in range(frames)]
     rows, general_rows, split_rows = [], [], []
     read_before = rend.readout_frames
-    moved_before = rend.readout_moved_frames
     for _ in range(blocks):
         rows += [rend.frame(f)[1] for f in sel]
         general_rows += [general.frame(f)[1] for f in sel]
@@ -95,7 +94,6 @@ def run_frames(scene, frames, sphere_path="analytic", blocks=4):
         "compile_s": max(first_s - med["total_ms"] / 1e3, 0.0),
         "median_ms": med,
         "readout_frames": rend.readout_frames - read_before,  # of the timed frames
-        "readout_moved_frames": rend.readout_moved_frames - moved_before,
         "readout_reason": rend.readout_reason,
         "general_median_ms": {k: float(np.median([r[k] for r in general_rows])) for k in general_rows[0]},
         "split_median_ms": {k: float(np.median([r[k] for r in split_rows])) for k in split_rows[0]},
@@ -204,8 +202,9 @@ def main():
                 f"{name:40s} {r['receivers']:7d} rec  compile {r['compile_s']:5.1f} s  "
                 + "  ".join(f"{k} {v:7.2f}" for k, v in r["median_ms"].items())
                 + f"  fps {r['fps']:6.1f}  shade {r['shading_us_per_receiver_per_occluder']:.3f} µs/rec/occ"
-                + f" (readout {r['readout_frames']}/{r['frames_timed']} frames,"
-                + f" {r['readout_moved_frames']} moved;"
+                + f" (readout {r['readout_frames']}/{r['frames_timed']} frames"
+                + ("" if r["readout_reason"] is None else f", not: {r['readout_reason']}")
+                + ";"
                 + f" general {r['general_median_ms']['shading_ms']:.2f} ms,"
                 + f" {r['general_shading_us_per_receiver_per_occluder']:.3f} µs/rec/occ)"
                 + f"  | split: field {sp['field_ms']:.2f} combine {sp['combine_ms']:.2f}"
