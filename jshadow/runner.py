@@ -157,7 +157,7 @@ def _with_receivers(scene, out):
 
 
 _place_and_shade = eqx.filter_jit(_place_and_shade_frame)
-_prepare_readout = eqx.filter_jit(prepare_readout)
+_prepare_readout = eqx.filter_jit(prepare_readout)  # ``shared`` (an int) is static
 _shade_readout = jax.jit(shade_readout, static_argnums=(3,))
 
 
@@ -325,7 +325,8 @@ class Renderer:
                 return None  # a single frame: the general path; prepare if it is rendered again
             points, normals = receivers_at_time(scene, 0.0)
             table = occlusion_table(scene)
-            ro = _prepare_readout(scene, bsvs[0], self._lighting, table, points, normals)
+            shared = shared_normal_count(normals)
+            ro = _prepare_readout(scene, bsvs[0], self._lighting, table, points, normals, shared)
             self._readout = (ro, points, normals, np.asarray(ro.center))
         ro, points, normals, center = self._readout
         if _centre_moved(bsvs[0].center, center, bsvs[0].shell_radius):  # a check the sampling missed
