@@ -51,7 +51,8 @@ from .field import (
     read_nodes,
 )
 from .lights import environment_irradiance, sphere_light_irradiance, sphere_light_sh
-from .scene import _shadow_ratio
+from .scaling import MkTable
+from .scene import Lighting, _shadow_ratio
 from .visibility import BSV
 
 __all__ = ["Readout", "readout_unsupported", "prepare_readout", "shade_readout"]
@@ -117,14 +118,16 @@ def readout_unsupported(
         return "the receivers move (a deforming occluder's own vertices)"
     if scene.method.shading not in ("ratio", "product"):
         return f"shading {scene.method.shading!r}"
+    if scene.environment is None and not scene.lights:
+        return "no light (the frame is black)"
     return None
 
 
 def prepare_readout(
     scene: Scene,
     bsv: BSV,
-    lighting,
-    table,
+    lighting: Lighting,
+    table: MkTable,
     points: Float[Array, "N 3"],
     normals: Float[Array, "N 3"],
     shared: int = 0,
@@ -205,7 +208,7 @@ def _times_transfer(t: Float[Array, "N n2"], cap: Float[Array, "N n2"], shared: 
 
 
 def shade_readout(
-    readout: Readout, bsv: BSV, table, n: int, albedo: Float[Array, "3"]
+    readout: Readout, bsv: BSV, table: MkTable, n: int, albedo: Float[Array, "3"]
 ) -> tuple[Float[Array, "N 3"], Float[Array, "N 3"]]:
     """Irradiance and outgoing radiance (N, 3) of the readout's receivers for a pose's ``bsv``
     (same centre and grid as at :func:`prepare_readout`, not checked here; any shell radius), with

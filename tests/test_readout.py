@@ -159,6 +159,7 @@ def test_scenes_the_readout_does_not_take_render_as_before():
             base.method, base.receivers, (sphere,), base.lights, base.environment, n_frames=4
         ),
         "receivers move": scene_with(Breathe(0.0, 0.3, period=1.0), dtype="float32", self_shadow=True),
+        "no light": Scene(base.method, base.receivers, base.occluders, (), None, n_frames=4),
     }
     for words, scene in cases.items():
         r = Renderer(scene)
