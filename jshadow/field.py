@@ -132,8 +132,9 @@ def field_nodes(bsv: BSV, table: MkTable, n: int) -> Float[Array, "TPK 2n2"]:
     product applied to every BSV sample (:func:`bsv_visibility_and_distance`), one GEMM of the (T·P,
     nb²) samples with the (nb², K·n²) matrices. Row ``(i·P + j)·(K − 1) + t`` holds shell point
     (θ_i, φ_j) at k_t and at k_{t+1} side by side (2n²): a receiver's bracket [k_t, k_{t+1}] is one
-    contiguous row per angular corner, four gathers instead of eight (the airplane's frame: XLA:CPU
-    gathers were the largest kernel of its shading, BENCHMARKS.md). Linear in the coefficients."""
+    contiguous row per angular corner, four gathers instead of eight (XLA:CPU's gathers were the
+    largest kernel of the airplane's shading; the general shading took 0.94–0.97× the time,
+    BENCHMARKS.md, "Rendering"). Linear in the coefficients."""
     t_n, p_n, nb2 = bsv.coeffs.shape
     mats = _node_matrices(table, nb2, n, bsv.coeffs.dtype)  # (K, nb², n²)
     k_n = mats.shape[0]

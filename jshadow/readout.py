@@ -38,7 +38,7 @@ import math
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Float, Int
+from jaxtyping import Array, Bool, Float, Int
 
 from . import sh
 from ._numerics import safe_norm
@@ -72,10 +72,11 @@ class Readout(eqx.Module):
         inv_d: (N,) 1 / the receiver's distance to the centre (0 at the centre): a deforming
             occluder's shell radius R changes from pose to pose, and with it k = R/d, so the
             bracket in k is found per frame (:func:`jshadow.field.field_bracket`).
-        vectors: (C, n², N) the functionals in each receiver's local frame, ``Rᵀ w`` (zero where
-            a light is nearer than the occluder, which then does not shadow it).
-        offset: (C, N) the functional's value for visibility 1 where ``vectors`` is zero, else 0.
-        unit: (C, N) the functional's value for visibility 1 (receivers beyond the table's range).
+        vectors: (C, n², N) the functionals in each receiver's local frame, ``Rᵀ w``.
+        near: (C, N) whether the occluder is nearer than the functional's light (always, for the
+            environment): where it is not, the occluder does not shadow that light, as in ``combine``.
+        unit: (C, N) the functional's value for visibility 1 (where ``near`` is False, and at
+            receivers beyond the table's range).
         unoccluded: (C, N) the n-band unoccluded value (the ratio's denominator).
         exact: (C, N) the exact unoccluded irradiance (ratio shading; the unoccluded otherwise).
         colours: (C, 3) the colour each functional's finished value is multiplied by: the unit
@@ -88,7 +89,7 @@ class Readout(eqx.Module):
     weights: Float[Array, "4 N"]
     inv_d: Float[Array, " N"]
     vectors: Float[Array, "C n2 N"]
-    offset: Float[Array, "C N"]
+    near: Bool[Array, "C N"]
     unit: Float[Array, "C N"]
     unoccluded: Float[Array, "C N"]
     exact: Float[Array, "C N"]
@@ -154,8 +155,9 @@ def prepare_readout(
         l_env = lighting.env_sh.astype(dtype)  # (n², 3)
         m_env = sh.product_matrix(l_env.T)  # (3, n², n²)
         funcs += list(jnp.einsum("cik,rk->cri", m_env, t))  # 3 × (N, n²)
-        unocc += list((t @ l_env).T)
-        ex = environment_irradiance(lighting.env_map, normals).astype(dtype) if ratio else t @ l_env
+        u_env = t @ l_env  # n-band unoccluded (N, 3)
+        unocc += list(u_env.T)
+        ex = environment_irradiance(lighting.env_map, normals).astype(dtype) if ratio else u_env
         exact += list(ex.T)
         colours += list(jnp.eye(3, dtype=dtype))
         dist_l += [jnp.full(d.shape, jnp.inf, dtype)] * 3
@@ -174,7 +176,6 @@ def prepare_readout(
         raise ValueError("prepare_readout: the scene has no light")
     w = jnp.stack(funcs)  # (C, N, n²) world-frame functionals
     light_distance = jnp.stack(dist_l)  # (C, N)
-    use = d < light_distance  # the occluder is in front of the light (always, for the environment)
 
     def rotate(s):
         return sh.rotate_zyz_cs(s, (cp, sp), (ct, st), prepared=True)
@@ -186,8 +187,8 @@ def prepare_readout(
         rows=jnp.stack(rows).astype(jnp.int32),
         weights=jnp.stack(weights).astype(bsv.coeffs.dtype),
         inv_d=inv_d,
-        vectors=jnp.transpose(jnp.where(use[..., None], local, 0.0), (0, 2, 1)),
-        offset=jnp.where(use, 0.0, unit * w[..., 0]),
+        vectors=jnp.transpose(local, (0, 2, 1)),
+        near=d < light_distance,
         unit=unit * w[..., 0],
         unoccluded=jnp.stack(unocc),
         exact=jnp.stack(exact).astype(dtype),
@@ -217,15 +218,15 @@ def shade_readout(
     t0, wk, in_range = field_bracket(table, bsv.shell_radius, readout.inv_d)
     rows = [r * (table.ks.shape[0] - 1) + t0 for r in readout.rows]
     s = read_nodes(pairs, rows, readout.weights, wk.astype(pairs.dtype), n)
-    q = _dots(s.T, readout.vectors, readout.offset)
-    return _finish(readout, jnp.where(in_range, q, readout.unit), albedo)  # beyond the table: V = 1
+    q = _dots(s.T, readout.vectors)
+    return _finish(readout, jnp.where(in_range & readout.near, q, readout.unit), albedo)
 
 
-def _dots(s: Float[Array, "n2 N"], vectors: Float[Array, "C n2 N"], offset) -> Float[Array, "C N"]:
-    """``offset + Σ_i s[i] · vectors[:, i]``: C dot products of n² per receiver, unrolled over n²
+def _dots(s: Float[Array, "n2 N"], vectors: Float[Array, "C n2 N"]) -> Float[Array, "C N"]:
+    """``Σ_i s[i] · vectors[:, i]``: C dot products of n² per receiver, unrolled over n²
     (an einsum of (N, n²)·(N, n², C) was 2.5× slower on XLA:CPU in a throwaway timing)."""
-    q = offset
-    for i in range(s.shape[0]):
+    q = s[0] * vectors[:, 0]
+    for i in range(1, s.shape[0]):
         q = q + s[i] * vectors[:, i]
     return q
 

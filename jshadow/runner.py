@@ -7,8 +7,8 @@ need: an occluder whose shape does not change over time (no deformation, or a de
 amount is the same at every frame) has its BSV computed once and reused for every frame, and so has
 its ray-cast visibility at its own vertices (``[method] self_visibility = "rays"``) and its
 occlusion images (``[method] light_visibility = "images"``; a deforming mesh's images come from its
-BSV's edge-scan pass). When the geometry does not move — one occluder deforming in place inside its
-fixed bounding sphere, receivers and lights that stay where they are (:mod:`jshadow.readout`) — the
+BSV's edge-scan pass). When the geometry does not move — one occluder deforming about a fixed
+bounding-sphere centre, receivers and lights that stay where they are (:mod:`jshadow.readout`) — the
 per-receiver part of the field and of the combination (cells, rotations, the lights' functionals) is
 computed once, and each frame only reads the field's table (``static_readout``, on by default).
 ``split_stages=True`` runs the shading as three calls instead (receivers, field, combination) so
@@ -250,12 +250,13 @@ class Renderer:
             default single shading call.
         static_readout: read fixed-geometry frames out of the field's table
             (:mod:`jshadow.readout`): prepared at the first frame of an animation (at the second
-            call of a one-frame scene), used for every frame whose occluder keeps its bounding
-            sphere. Same numbers as the general path up to rounding. Not with ``split_stages``,
-            ``devices`` or frames of more than ``chunk`` receivers, nor for an occluder whose
-            bounding sphere's centre moves (sampled at four times of the animation before
-            preparing, checked every frame). ``readout_frames`` counts the frames it shaded;
-            ``readout_reason`` says why it does not apply (None if it does).
+            call of a one-frame scene), used for every frame whose occluder keeps its
+            bounding-sphere centre (its radius may change). Same numbers as the general path up to
+            rounding. Not with ``split_stages``, ``devices`` or frames of more than ``chunk``
+            receivers, nor for an occluder whose bounding sphere's centre moves (sampled at four
+            times of the animation before preparing, checked every frame). ``readout_frames``
+            counts the frames it shaded; ``readout_reason`` says why it does not apply (None if
+            it does).
     """
 
     def __init__(
@@ -478,15 +479,11 @@ class Renderer:
             ro, points, normals = readout
             scene, table = self.scene, occlusion_table(self.scene)
             e, rad = _shade_readout(ro, bsvs[0], table, scene.method.sh_bands, scene.receivers.albedo)
-            jax.block_until_ready((e, rad))
+            e, rad = jax.block_until_ready((e, rad))
             self.readout_frames += 1
-            t2 = time.perf_counter()
-            res = RenderResult(points=points, normals=normals, irradiance=e, radiance=rad)
-            times = {**first, "shading_ms": 1e3 * (t2 - t1)}
-            times["total_ms"] = sum(times.values())
-            return res, times
-        if one_call:
+        elif one_call:
             points, normals, e, rad = jax.block_until_ready(self._shade_once(bsvs, t_arr, own, images))
+        if one_call:
             t2 = time.perf_counter()
             res = RenderResult(points=points, normals=normals, irradiance=e, radiance=rad)
             times = {**first, "shading_ms": 1e3 * (t2 - t1)}

@@ -12,7 +12,7 @@ from jshadow.runner import Renderer
 from jshadow.scene import occlusion_table, scene_lighting
 
 CENTRE = (0.1, 1.0, -0.2)
-CENTRE_ROW = 82  # receivers(): the plane's 81, one beyond the table, then the one at the centre
+FAR_ROW, CENTRE_ROW = 81, 82  # receivers(): the plane's 81, one beyond the table, one at the centre
 
 
 def receivers(dtype, n=9, size=4.0):
@@ -92,7 +92,7 @@ def test_readout_frames_equal_the_general_path(deform, shading, self_shadow):
     if not self_shadow:  # the receiver beyond the table's range sees no occluder
         bare = Scene(scene.method, scene.receivers, (), scene.lights, scene.environment, n_frames=4)
         free = np.asarray(Renderer(bare).frame(0)[0].irradiance)
-        np.testing.assert_allclose(np.asarray(pairs[0][1].irradiance)[81], free[81], rtol=1e-12)
+        np.testing.assert_allclose(np.asarray(pairs[0][1].irradiance)[FAR_ROW], free[FAR_ROW], rtol=1e-12)
 
 
 @pytest.mark.usefixtures("x64")
