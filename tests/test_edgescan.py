@@ -249,3 +249,29 @@ def test_wrong_edge_table():
         bsv_mesh_edgescan(
             icosphere(1).vertices, icosphere(1).faces, edge_table=build_edge_table(icosphere(0).faces)
         )
+
+
+def test_edge_table_first_built_inside_a_derivative_rule_under_jit_is_concrete():
+    # a topology first seen inside a custom_jvp rule under jax.jit(jax.grad(...)) (a deforming mesh
+    # whose BSV input has the placed centre's six anchors: a vertex count no forward pass had
+    # cached) came out of ensure_compile_time_eval as tracers and was cached as such, breaking the
+    # next call that read the table on the host
+    from jshadow.visibility._edgescan import _TABLES, _cached_edge_table, _topology_key
+
+    faces = np.asarray(icosphere(1).faces, np.int32)
+    rows = 977  # no other test's vertex count
+    _TABLES.pop(_topology_key(faces, rows), None)
+    seen = []
+
+    @jax.custom_jvp
+    def identity(x):
+        return x
+
+    @identity.defjvp
+    def _jvp(primals, tangents):
+        seen.append(_cached_edge_table(faces, rows).a)
+        return primals[0], tangents[0]
+
+    jax.jit(jax.grad(lambda x: identity(x).sum()))(jnp.ones(3))
+    assert seen and not any(isinstance(a, jax.core.Tracer) for a in seen)
+    assert not isinstance(_TABLES[_topology_key(faces, rows)].a, jax.core.Tracer)

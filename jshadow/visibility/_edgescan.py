@@ -443,7 +443,9 @@ def _cached_edge_table(faces, num_vertices):
     if key not in _TABLES:
         if len(_TABLES) >= 64:
             _TABLES.clear()
-        with jax.ensure_compile_time_eval():  # concrete arrays even when first reached under jit
+        # concrete arrays even when first reached under a trace (ensure_compile_time_eval is not
+        # enough inside a custom_jvp rule under jax.jit(jax.grad(...)): its arrays came out traced)
+        with jax.core.eval_context():
             _TABLES[key] = build_edge_table(faces, num_vertices)
     return _TABLES[key]
 
