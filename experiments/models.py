@@ -76,7 +76,7 @@ FIGURES = ROOT / "experiments" / "figures"
 
 # method variants: label -> [method] keys (on top of the scene's own sizes: bands, grid, directions)
 VARIANTS = {
-    "paper": dict(shell=1.0, model="paper", bsv_bands=4, shading="product"),
+    "paper": dict(shell=1.0, model="paper", bsv_bands=4, shading="product", bsv_center="box"),
     "shell1.5": dict(shell=1.5, model="paper", bsv_bands=4, shading="product"),
     "sphere": dict(shell=1.5, model="sphere", bsv_bands=4, shading="product"),
     "sphere+b5": dict(shell=1.5, model="sphere", bsv_bands=5, shading="product"),

@@ -24,11 +24,12 @@ visibility; ``tests/test_readout.py``), and the saving is measured in BENCHMARKS
 
 Scope (:func:`readout_unsupported` names what rules it out): exactly one occluder, with a BSV (a
 mesh, or a sphere on the "bsv" path); no ray-cast own-vertex rows, occlusion images or environment
-lights; receivers and lights fixed (the scene's positions cannot be animated; a deforming mesh's own
-vertices move, so ``self_shadow`` rules out a deforming mesh); a bounding-sphere centre that stays
-where it is (a deformation that is not symmetric about the centre moves the centre of the deformed
-mesh's bounding box, as the airplane's bend does). Several occluders multiply their visibilities (an
-SH product), which is not linear in each.
+lights; lights fixed (the scene's positions cannot be animated); a bounding-sphere centre that stays
+where it is (``method.bsv_center = "placed"``, the default, keeps a deforming mesh's; with "box" a
+deformation that is not symmetric about the centre moves it, as the airplane's bend does). Only
+receivers that do not move are read out: a deforming mesh's own vertices (``self_shadow``) move, and
+:class:`jshadow.Renderer` shades them by the general path in the same call. Several occluders
+multiply their visibilities (an SH product), which is not linear in each.
 """
 
 from __future__ import annotations
@@ -98,15 +99,13 @@ class Readout(eqx.Module):
     ratio: bool = eqx.field(static=True)
 
 
-def readout_unsupported(
-    scene: Scene, bsvs, own=None, images=None, env_lights=None, moving_receivers: bool = False
-) -> str | None:
+def readout_unsupported(scene: Scene, bsvs, own=None, images=None, env_lights=None) -> str | None:
     """Why a frame of ``scene`` cannot be read out (module docstring), or None if it can.
 
     ``bsvs`` are the frame's BSVs (None for an analytic sphere), ``own``/``images``/``env_lights``
     the renderer's ray-cast own-vertex rows, occlusion images and environment lights (None when
-    unused), ``moving_receivers`` whether the receivers change between frames (a deforming mesh's
-    own vertices). The caller compares each frame's BSV centre with the readout's."""
+    unused). The caller compares each frame's BSV centre with the readout's, and reads out only
+    receivers that do not move (a deforming mesh's own vertices do)."""
     if len(scene.occluders) != 1:
         return f"{len(scene.occluders)} occluders (the readout takes exactly one)"
     if bsvs[0] is None:
@@ -115,8 +114,6 @@ def readout_unsupported(
         return "ray-cast own-vertex visibility"
     if images is not None or env_lights is not None:
         return "occlusion images or environment lights"
-    if moving_receivers:
-        return "the receivers move (a deforming occluder's own vertices)"
     if scene.method.shading not in ("ratio", "product"):
         return f"shading {scene.method.shading!r}"
     if scene.environment is None and not scene.lights:

@@ -8,9 +8,11 @@ amount is the same at every frame) has its BSV computed once and reused for ever
 its ray-cast visibility at its own vertices (``[method] self_visibility = "rays"``) and its
 occlusion images (``[method] light_visibility = "images"``; a deforming mesh's images come from its
 BSV's edge-scan pass). When the geometry does not move — one occluder deforming about a fixed
-bounding-sphere centre, receivers and lights that stay where they are (:mod:`jshadow.readout`) — the
-per-receiver part of the field and of the combination (cells, rotations, the lights' functionals) is
-computed once, and each frame only reads the field's table (``static_readout``, on by default).
+bounding-sphere centre (``[method] bsv_center = "placed"``, the default), receivers and lights that
+stay where they are (:mod:`jshadow.readout`) — the per-receiver part of the field and of the
+combination (cells, rotations, the lights' functionals) is computed once, and each frame only reads
+the field's table (``static_readout``, on by default); a deforming occluder's own vertices, which
+move, are shaded by the general path in the same call.
 ``split_stages=True`` runs the shading as three calls instead (receivers, field, combination) so
 that each can be timed; the one-call shading is faster (fewer dispatches and synchronisations, and
 XLA schedules the stages together: the animated bunny's shading 1.99 ms against 2.57 ms split,
@@ -49,6 +51,7 @@ from .readout import prepare_readout, readout_unsupported, shade_readout
 from .scene import (
     RenderResult,
     assemble_own_rows,
+    bsv_input_vertices,
     combine,
     image_fractions,
     occluder_bsv,
@@ -156,9 +159,28 @@ def _with_receivers(scene, out):
     return points, normals, e, rad
 
 
+def _readout_frame(scene, bsvs, t, lighting, analytic_spheres, readout, table):
+    """A frame read out of the field's table (:func:`jshadow.readout.shade_readout`) at its first
+    receivers, the fixed ones ``readout`` was prepared for, and shaded by the general path
+    (:func:`_shade_piece`) at the rest: a deforming occluder's own vertices with ``self_shadow``,
+    which move. One call; returns ``(points, normals, e, rad)`` as :func:`_place_and_shade_frame`."""
+    e, rad = shade_readout(readout, bsvs[0], table, scene.method.sh_bands, scene.receivers.albedo)
+    fixed = readout.inv_d.shape[0]
+    points, normals = receivers_at_time(scene, t)
+    if points.shape[0] == fixed:
+        if points is scene.receivers.points and normals is scene.receivers.normals:
+            return None, None, e, rad
+        return points, normals, e, rad
+    light = _without_receivers(scene)
+    e2, rad2 = _shade_piece(
+        light, bsvs, points[fixed:], normals[fixed:], lighting, analytic_spheres, 0, None, None
+    )
+    return points, normals, jnp.concatenate([e, e2]), jnp.concatenate([rad, rad2])
+
+
 _place_and_shade = eqx.filter_jit(_place_and_shade_frame)
+_readout_and_shade = eqx.filter_jit(_readout_frame)
 _prepare_readout = eqx.filter_jit(prepare_readout)  # ``shared`` (an int) is static
-_shade_readout = jax.jit(shade_readout, static_argnums=(3,))
 
 
 def _centre_moved(center, reference: np.ndarray, shell_radius) -> bool:
@@ -170,32 +192,37 @@ def _centre_moved(center, reference: np.ndarray, shell_radius) -> bool:
     return bool(shift > eps(reference.dtype) * float(np.abs(reference).max() + np.asarray(shell_radius)))
 
 
-def _centre_moves(occ, bsv) -> bool:
-    """Whether a deforming mesh's bounding-sphere centre moves: its deformed vertices' box centre
-    (:func:`jshadow.geometry.bounding_sphere`, as its BSV takes it) at times 0, 1/3, 2/3 and 1
-    against the BSV's (one compiled call, vmapped over the times: 0.13–0.18 s to compile, against
-    0.64 s for the same operations dispatched one by one). False for shapes that do not change."""
+def _centre_moves(occ, bsv, method) -> bool:
+    """Whether a deforming mesh's bounding-sphere centre moves: the centre its BSV takes
+    (:func:`jshadow.geometry.bounding_sphere` of :func:`jshadow.scene.bsv_input_vertices`: the
+    deformed vertices' box centre, or the placed centre with ``method.bsv_center = "placed"``) at
+    times 0, 1/3, 2/3 and 1 against the BSV's (one compiled call, vmapped over the times: 0.13–0.18 s
+    to compile, against 0.64 s for the same operations dispatched one by one). False for shapes that
+    do not change."""
     if shape_is_static(occ):
         return False
     ref = np.asarray(bsv.center)
     times = jnp.asarray([0.0, 1 / 3, 2 / 3, 1.0], ref.dtype)
-    return any(_centre_moved(c, ref, bsv.shell_radius) for c in np.asarray(_box_centres(occ, times)))
+    centres = np.asarray(_box_centres(occ, method, times))
+    return any(_centre_moved(c, ref, bsv.shell_radius) for c in centres)
 
 
 @eqx.filter_jit
-def _box_centres(occ, times):
+def _box_centres(occ, method, times):
     from .geometry import bounding_sphere
 
-    return jax.vmap(lambda t: bounding_sphere(occ.vertices(t))[0])(times)
+    return jax.vmap(lambda t: bounding_sphere(bsv_input_vertices(occ, occ.vertices(t), method))[0])(times)
 
 
 _FLAT_SHADERS: dict = {}
 
 
-def _flat_shader(scene: Scene, lighting, analytic_spheres: bool, shared_normal: int):
+def _flat_shader(scene: Scene, lighting, analytic_spheres: bool, shared_normal: int, readout: bool = False):
     """:func:`_place_and_shade` for one scene as ``(call, dynamic)``: ``call(dynamic, bsvs, t, own,
-    images)`` is a plain ``jax.jit`` function of the scene's and lighting's arrays (``dynamic``, a
-    list flattened once here) and of the frame's BSVs and time. ``eqx.filter_jit`` partitions,
+    images, extra)`` is a plain ``jax.jit`` function of the scene's and lighting's arrays (``dynamic``, a
+    list flattened once here) and of the frame's BSVs and time; with ``readout``, it is
+    :func:`_readout_frame` instead, and ``extra`` is its ``(readout, table)`` (None otherwise).
+    ``eqx.filter_jit`` partitions,
     flattens and hashes the whole scene on every call: without that the six shipped configs shade in
     0.86–0.91× the time (the airplane 2.69 → 2.32 ms, BENCHMARKS.md, "Rendering"). Same trace, same
     numbers. Scenes with the same structure and static parts share one compiled function (a renderer
@@ -206,17 +233,19 @@ def _flat_shader(scene: Scene, lighting, analytic_spheres: bool, shared_normal: 
     mask = tuple(eqx.is_array(x) for x in leaves)
     static = tuple(None if m else x for x, m in zip(leaves, mask, strict=True))
     dynamic = [x for x, m in zip(leaves, mask, strict=True) if m]
-    key = (tree, static, bool(analytic_spheres), int(shared_normal))
+    key = (tree, static, bool(analytic_spheres), int(shared_normal), bool(readout))
     try:
         call = _FLAT_SHADERS.get(key)
     except TypeError:  # an unhashable static leaf
         return None
     if call is None:
 
-        def run(dyn, bsvs, t, own, images):
+        def run(dyn, bsvs, t, own, images, extra):
             it = iter(dyn)
             full = [next(it) if m else x for x, m in zip(static, mask, strict=True)]
             scn, light = jax.tree_util.tree_unflatten(tree, full)
+            if readout:
+                return _readout_frame(scn, bsvs, t, light, analytic_spheres, *extra)
             return _place_and_shade_frame(scn, bsvs, t, light, analytic_spheres, shared_normal, own, images)
 
         if len(_FLAT_SHADERS) >= 32:  # scenes are few per process; bound the cache anyway
@@ -251,10 +280,13 @@ class Renderer:
         static_readout: read fixed-geometry frames out of the field's table
             (:mod:`jshadow.readout`): prepared at the first frame of an animation (at the second
             call of a one-frame scene), used for every frame whose occluder keeps its
-            bounding-sphere centre (its radius may change). Same numbers as the general path up to
-            rounding. Not with ``split_stages``, ``devices`` or frames of more than ``chunk``
-            receivers, nor for an occluder whose bounding sphere's centre moves (sampled at four
-            times of the animation before preparing, checked every frame). ``readout_frames``
+            bounding-sphere centre (its radius may change), at the receivers that do not move (a
+            deforming occluder's own vertices are shaded by the general path in the same call).
+            Same numbers as the general path up to rounding. Not with ``split_stages``,
+            ``devices`` or frames of more than ``chunk`` receivers, nor for an occluder whose
+            bounding sphere's centre moves (``bsv_center = "box"`` and a deformation not
+            symmetric about the centre; sampled at four times of the animation before preparing,
+            checked every frame). ``readout_frames``
             counts the frames it shaded; ``readout_reason`` says why it does not apply (None if
             it does).
     """
@@ -298,7 +330,7 @@ class Renderer:
         self._static_own: dict[int, object] = {}
         self._static_rows = None  # all of them, when no mesh occluder deforms
         self.self_visibility_computations = 0
-        self._flat = None  # _flat_shader(...) (or ()), built at the first one-call frame
+        self._flat = {}  # readout or not -> _flat_shader(...) (or ()), built at the first such frame
         # method.light_visibility = "images": the occluders' occlusion images, once for shapes that
         # do not change, every frame for those that deform (tests check the reuse)
         self._uses_images = uses_light_images(scene)
@@ -318,26 +350,33 @@ class Renderer:
             return None
         if self._readout is None:
             scene = self.scene
-            moving = scene.self_shadow and not all(shape_is_static(o) for o in scene.occluders)
-            reason = readout_unsupported(scene, bsvs, own, images, self._lighting.env_lights, moving)
+            reason = readout_unsupported(scene, bsvs, own, images, self._lighting.env_lights)
+            fixed = self._receiver_count
+            if reason is None and scene.self_shadow and not shape_is_static(scene.occluders[0]):
+                # a deforming occluder's own vertices move: the general path shades them, in the
+                # same call (_readout_frame); the plane's receivers are read out
+                fixed = scene.receivers.points.shape[0]
+                if fixed == 0:
+                    reason = "no fixed receivers (only a deforming occluder's own vertices)"
             if reason is not None:
                 self.readout_reason, self._readout = reason, False
                 return None
-            if _centre_moves(scene.occluders[0], bsvs[0]):
+            if _centre_moves(scene.occluders[0], bsvs[0], scene.method):
                 self.readout_reason, self._readout = "the bounding sphere's centre moves", False
                 return None
             if scene.n_frames <= 1 and self._frames_shaded == 0:
                 return None  # a single frame: the general path; prepare if it is rendered again
             points, normals = receivers_at_time(scene, 0.0)
+            points, normals = points[:fixed], normals[:fixed]
             table = occlusion_table(scene)
             shared = shared_normal_count(normals)
             ro = _prepare_readout(scene, bsvs[0], self._lighting, table, points, normals, shared)
-            self._readout = (ro, points, normals, np.asarray(ro.center))
-        ro, points, normals, center = self._readout
+            self._readout = (ro, np.asarray(ro.center))
+        ro, center = self._readout
         if _centre_moved(bsvs[0].center, center, bsvs[0].shell_radius):  # a check the sampling missed
             self.readout_reason, self._readout = "the bounding sphere's centre moves", False
             return None
-        return ro, points, normals
+        return ro
 
     def _bsvs(self, t):
         out = []
@@ -419,18 +458,26 @@ class Renderer:
             out.append(img)
         return tuple(out)
 
-    def _shade_once(self, bsvs, t, own=None, images=None):
-        """One call placing every receiver of the frame at time ``t`` (an array) and shading them."""
+    def _shade_once(self, bsvs, t, own=None, images=None, readout=None):
+        """One call placing every receiver of the frame at time ``t`` (an array) and shading them;
+        with ``readout`` (a prepared :class:`jshadow.readout.Readout`), the fixed ones read out
+        (:func:`_readout_frame`)."""
         analytic = self.sphere_path == "analytic"
-        if self._flat is None:  # () when the scene cannot be flattened into a hashable key
-            self._flat = _flat_shader(self.scene, self._lighting, analytic, self._shared_normal) or ()
-        if not self._flat:
+        mode = readout is not None
+        if mode not in self._flat:  # () when the scene cannot be flattened into a hashable key
+            self._flat[mode] = (
+                _flat_shader(self.scene, self._lighting, analytic, self._shared_normal, mode) or ()
+            )
+        extra = None if readout is None else (readout, occlusion_table(self.scene))
+        if self._flat[mode]:
+            call, dynamic = self._flat[mode]
+            out = call(dynamic, bsvs, t, own, images, extra)
+        elif readout is not None:
+            out = _readout_and_shade(self.scene, bsvs, t, self._lighting, analytic, *extra)
+        else:
             out = _place_and_shade(
                 self.scene, bsvs, t, self._lighting, analytic, self._shared_normal, own, images
             )
-        else:
-            call, dynamic = self._flat
-            out = call(dynamic, bsvs, t, own, images)
         return _with_receivers(self.scene, out)
 
     def piece_size(self, n: int) -> int:
@@ -475,14 +522,11 @@ class Renderer:
         one_call = not self.split_stages and self.mesh is None and n <= self.chunk
         readout = self._readout_for(bsvs, own, images) if one_call else None
         self._frames_shaded += 1
-        if readout is not None:
-            ro, points, normals = readout
-            scene, table = self.scene, occlusion_table(self.scene)
-            e, rad = _shade_readout(ro, bsvs[0], table, scene.method.sh_bands, scene.receivers.albedo)
-            e, rad = jax.block_until_ready((e, rad))
-            self.readout_frames += 1
-        elif one_call:
-            points, normals, e, rad = jax.block_until_ready(self._shade_once(bsvs, t_arr, own, images))
+        if one_call:
+            points, normals, e, rad = jax.block_until_ready(
+                self._shade_once(bsvs, t_arr, own, images, readout)
+            )
+            self.readout_frames += readout is not None
         if one_call:
             t2 = time.perf_counter()
             res = RenderResult(points=points, normals=normals, irradiance=e, radiance=rad)

@@ -42,7 +42,7 @@ from .entities import (
 )
 from .envlights import EnvironmentLights, split_environment
 from .field import bsv_visibility_and_distance, sphere_light_blocked, sphere_visibility_sh, unit_visibility
-from .geometry import bounding_sphere
+from .geometry import bounding_sphere, with_center_anchors
 from .lights import (
     IrradianceMap,
     environment_irradiance,
@@ -180,9 +180,12 @@ def mesh_bsv(occ: MeshOccluder, t, scene: Scene, differentiable: bool = True) ->
     faces = _concrete(occ.faces)
     traced = any(isinstance(x, jax.core.Tracer) for x in (occ.unit_vertices, t))
     if not differentiable and faces is not None and not traced and _uses_edgescan(m, faces):
-        shape = occ.unit_vertices.shape[0], occ.unit_vertices.dtype
-        return bsv_mesh_edgescan_of(_deformed, (occ, t), faces, *shape, **kw)
-    v = _vertices_at(occ, t)
+        anchored = _placed(occ, m)
+        shape = occ.unit_vertices.shape[0] + (6 if anchored else 0), occ.unit_vertices.dtype
+        return bsv_mesh_edgescan_of(
+            _deformed_anchored if anchored else _deformed, (occ, t), faces, *shape, **kw
+        )
+    v = bsv_input_vertices(occ, _vertices_at(occ, t), m)
     if not differentiable:
         return bsv_mesh(v, occ.faces, method=m.bsv_method, **kw)
     center, radius = bounding_sphere(v)
@@ -190,9 +193,31 @@ def mesh_bsv(occ: MeshOccluder, t, scene: Scene, differentiable: bool = True) ->
     return BSV(coeffs=coeffs, center=center, radius=radius, shell_radius=m.shell * radius)
 
 
+def _placed(occ: MeshOccluder, m) -> bool:
+    """Whether this occluder's BSV is sampled about its placed centre (a deforming mesh with
+    ``method.bsv_center = "placed"``)."""
+    return m.bsv_center == "placed" and occ.deforms
+
+
+def bsv_input_vertices(occ: MeshOccluder, v: Float[Array, "V 3"], m) -> Float[Array, "W 3"]:
+    """The vertices a BSV sampler is given for the occluder's world vertices ``v`` (V, 3).
+
+    ``v`` itself (W = V), whose box-centred sphere the samplers take, except for a deforming mesh
+    with ``method.bsv_center = "placed"``: then ``v`` and six anchors (W = V + 6,
+    :func:`jshadow.geometry.with_center_anchors`), which centre that sphere on ``occ.center``.
+    The bounding sphere of the result (:func:`jshadow.geometry.bounding_sphere`) is the BSV's.
+    """
+    return with_center_anchors(v, occ.center) if _placed(occ, m) else v
+
+
 def _deformed(occ: MeshOccluder, t) -> Float[Array, "V 3"]:
     """World vertices at time t (the function :func:`mesh_bsv` compiles together with the BSV)."""
     return occ.vertices(t)
+
+
+def _deformed_anchored(occ: MeshOccluder, t) -> Float[Array, "V+6 3"]:
+    """:func:`_deformed` with the anchors of the placed centre (:func:`bsv_input_vertices`)."""
+    return with_center_anchors(occ.vertices(t), occ.center)
 
 
 def _differentiable_coeffs(occ: MeshOccluder, v, faces: np.ndarray | None, m, kw):
@@ -306,7 +331,7 @@ def _cached_slots(kind: str, occ: MeshOccluder, faces: np.ndarray, m, measure, m
     key = (*topo, hash(unit.tobytes()))
     if key in _SLOTS:
         return _SLOTS[key]
-    poses = _poses(occ, unit)
+    poses = _poses(occ, unit, m)
 
     def run():
         if key not in _SLOTS:
@@ -321,15 +346,19 @@ def _cached_slots(kind: str, occ: MeshOccluder, faces: np.ndarray, m, measure, m
     return run()
 
 
-def _poses(occ: MeshOccluder, unit: np.ndarray) -> list[np.ndarray]:
+def _poses(occ: MeshOccluder, unit: np.ndarray, m) -> list[np.ndarray]:
     """The rest pose ``unit`` and, if the occluder is concrete (no traced deformation parameter),
-    five poses of its animation (t = 0 … 1), as numpy arrays."""
+    five poses of its animation (t = 0 … 1), as numpy arrays, each as the BSV's sampler is given
+    it (:func:`bsv_input_vertices`)."""
     poses = [unit]
     if occ.deform is None or any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(occ)):
         return poses
     with jax.core.eval_context():  # concrete also while a caller is being traced
+        if _placed(occ, m):  # as the BSV sees them: anchored about the placed centre
+            poses = [np.asarray(with_center_anchors(unit, jnp.zeros(3, unit.dtype)))]
         for t in np.linspace(0.0, 1.0, 5):
-            poses.append(np.asarray(_vertices_at(occ, jnp.asarray(t, occ.unit_vertices.dtype))))
+            v = _vertices_at(occ, jnp.asarray(t, occ.unit_vertices.dtype))
+            poses.append(np.asarray(bsv_input_vertices(occ, v, m)))
     return poses
 
 
@@ -569,7 +598,7 @@ def occluder_images(occ, t, scene: Scene) -> OcclusionImages | None:
     if not isinstance(occ, MeshOccluder):
         return None
     m = scene.method
-    v = _vertices_at(occ, jnp.asarray(t, occ.unit_vertices.dtype))
+    v = bsv_input_vertices(occ, _vertices_at(occ, jnp.asarray(t, occ.unit_vertices.dtype)), m)
     faces = occ.faces
 
     def forward(x):
@@ -587,7 +616,7 @@ def occluder_bsv_and_images(occ: MeshOccluder, t, scene: Scene) -> tuple[BSV, Oc
     faces = _concrete(occ.faces)
     if faces is None or not _uses_edgescan(m, faces):
         return None
-    v = _vertices_at(occ, jnp.asarray(t, occ.unit_vertices.dtype))
+    v = bsv_input_vertices(occ, _vertices_at(occ, jnp.asarray(t, occ.unit_vertices.dtype)), m)
     if _concrete(v) is None:
         return None
     return bsv_with_occlusion_images(v, faces, m.field_bands, m.bsv_grid, m.directions, m.shell)

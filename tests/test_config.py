@@ -21,7 +21,7 @@ from jshadow.config import (
     rotate_latlong_y,
     set_param,
 )
-from jshadow.entities import Environment, MeshOccluder, SphereLight, SphereOccluder
+from jshadow.entities import Environment, MeshOccluder, Method, SphereLight, SphereOccluder
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 CONFIGS = sorted((REPO / "configs").glob("*.toml"))
@@ -126,6 +126,11 @@ def test_defaults_and_float64(x64):
     assert cfg.environment is None and cfg.animation.frames == 1
     assert cfg.occluder[0].radius.dtype == jnp.float64
     m = build_scene(cfg).method
+    assert m.bsv_center == "placed"
+    paper = config_from_dict(base_dict(method={"preset": "paper"})).method.to_method()
+    assert (paper.bsv_center, paper.shell) == ("box", 1.0) and paper == Method.paper()
+    placed = config_from_dict(base_dict(method={"preset": "paper", "bsv_center": "placed"}))
+    assert placed.method.to_method().bsv_center == "placed"
     assert (m.sh_bands, m.directions, m.shell, m.bsv_method, m.dtype) == (
         4,
         (32, 32),
@@ -168,6 +173,7 @@ BAD = [
     (_sub("sh_bands = 4", "sh_bands = 9"), ["method.sh_bands", "1..8"]),
     (_sub("sh_bands = 4", "shell = 0.5"), ["method.shell", ">= 1"]),
     (_sub("sh_bands = 4", 'dtype = "float16"'), ["method.dtype", "float32"]),
+    (_sub("sh_bands = 4", 'bsv_center = "centroid"'), ["method.bsv_center", "placed"]),
     (
         _sub("albedo = [0.5, 0.5, 0.5]", 'albedo = [0.5, 0.5, 0.5]\nself_shadow = "yes"'),
         ["receiver.self_shadow", "true or false"],

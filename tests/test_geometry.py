@@ -30,6 +30,7 @@ from jshadow.geometry import (
     signed_volume,
     validate_mesh,
     vertex_normals,
+    with_center_anchors,
 )
 
 ASSETS = Path(__file__).resolve().parents[1] / "assets"
@@ -309,6 +310,55 @@ def test_bounding_sphere_gradient_with_ties_and_zero_radius_is_finite():
     single = jnp.zeros((4, 3))  # all vertices equal: radius 0
     g0 = jax.grad(lambda v: bounding_sphere(v)[1])(single)
     assert bool(jnp.all(jnp.isfinite(g0)))
+
+
+@pytest.mark.usefixtures("x64")
+def test_center_anchors_centre_the_bounding_sphere_on_a_given_point(rng):
+    # the box of vertices + anchors is c ± h: its centre is c, its radius the farthest vertex from c
+    for trial in range(20):
+        v = rng.normal(size=(7, 3)) * rng.uniform(0.1, 3.0, size=3)
+        c = v.mean(0) + rng.normal(size=3) * 0.3 * (trial % 4)
+        anchored = with_center_anchors(v, c)
+        assert anchored.shape == (13, 3)
+        np.testing.assert_array_equal(np.asarray(anchored[:7]), v)  # faces still index the vertices
+        center, radius = bounding_sphere(anchored)
+        np.testing.assert_allclose(np.asarray(center), c, rtol=0, atol=1e-14)
+        np.testing.assert_allclose(float(radius), np.linalg.norm(v - c, axis=-1).max(), rtol=1e-14)
+    # at the box centre, the sphere is the box-centred one
+    box_c, box_r = bounding_sphere(v)
+    center, radius = bounding_sphere(with_center_anchors(v, box_c))
+    np.testing.assert_allclose(np.asarray(center), np.asarray(box_c), atol=1e-14)
+    np.testing.assert_allclose(float(radius), float(box_r), rtol=1e-14)
+    with pytest.raises(ValueError, match="vertices of shape"):
+        with_center_anchors(np.zeros((0, 3)), c)
+    with pytest.raises(ValueError, match="centre of shape"):
+        with_center_anchors(v, np.zeros(2))
+
+
+@pytest.mark.usefixtures("x64")
+def test_center_anchors_sphere_gradient_matches_finite_differences(rng):
+    # radius = max |v - c|, centre = c: d/dv reaches only the farthest vertex, d/dc is -unit + identity
+    v = rng.normal(size=(9, 3))
+    c = rng.normal(size=3) * 0.2
+    w = rng.normal(size=3)
+
+    def f(v, c):
+        center, radius = bounding_sphere(with_center_anchors(v, c))
+        return jnp.dot(center, w) + 2.0 * radius
+
+    gv, gc = jax.grad(f, argnums=(0, 1))(v, c)
+    far = int(np.argmax(np.linalg.norm(v - c, axis=-1)))
+    unit = (v[far] - c) / np.linalg.norm(v[far] - c)
+    expect_v = np.zeros_like(v)
+    expect_v[far] = 2.0 * unit
+    np.testing.assert_allclose(np.asarray(gv), expect_v, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(gc), w - 2.0 * unit, atol=1e-12)
+    # a flat point set (h_y = 0: two anchors on c) and a single point (radius 0): finite
+    flat = v.copy()
+    flat[:, 1] = c[1]
+    for pts in (flat, np.tile(c, (3, 1))):
+        g = jax.grad(f, argnums=(0, 1))(pts, c)
+        assert all(bool(jnp.all(jnp.isfinite(x))) for x in g)
 
 
 _FUSED_MAX_SCRIPT = """

@@ -160,7 +160,7 @@ def test_renderer_bsv_of_a_deforming_mesh_is_one_call_equal_to_the_two_step_path
     # for bit with the same slots: measured on the first pose, grown after an overflow (and shared
     # with that path), without compiling the two-step path at all
     from jshadow.geometry import Twist
-    from jshadow.scene import _vertices_at, mesh_bsv
+    from jshadow.scene import _vertices_at, bsv_input_vertices, mesh_bsv
     from jshadow.visibility import _edgescan as es
     from jshadow.visibility import bsv_mesh
 
@@ -170,10 +170,13 @@ def test_renderer_bsv_of_a_deforming_mesh_is_one_call_equal_to_the_two_step_path
     faces = np.asarray(occ.faces)
     kw = dict(n=m.field_bands, grid=m.bsv_grid, directions=m.directions, shell=m.shell)
     config = (m.bsv_grid, m.directions, m.shell)
-    key = es._rest_key(faces, occ.unit_vertices.shape[0], jnp.float32, *config)
+    rows = occ.unit_vertices.shape[0] + 6  # the vertices and the placed centre's anchors
+    key = es._rest_key(faces, rows, jnp.float32, *config)
 
     def two_step(t):
-        return bsv_mesh(_vertices_at(occ, jnp.float32(t)), faces, method=m.bsv_method, **kw).coeffs
+        v = bsv_input_vertices(occ, _vertices_at(occ, jnp.float32(t)), m)
+        assert v.shape[0] == rows
+        return bsv_mesh(v, faces, method=m.bsv_method, **kw).coeffs
 
     es._REST_SLOTS.pop(key, None)  # this topology unseen: the first call measures its slots
     compiles = es._run_jit._cache_size()
@@ -189,7 +192,7 @@ def test_renderer_bsv_of_a_deforming_mesh_is_one_call_equal_to_the_two_step_path
     repaired = mesh_bsv(occ, 1.0, scene, differentiable=False).coeffs
     np.testing.assert_array_equal(np.asarray(repaired), np.asarray(two_step(1.0)))
     es._REST_SLOTS[key] = measured
-    table = es._cached_edge_table(faces, occ.unit_vertices.shape[0])
+    table = es._cached_edge_table(faces, rows)
     tiny = es._check_slots((1, 1, 1, 1), *es._slot_bounds(table, m.bsv_grid, m.directions))
     grown = es._GROWN[es._grown_key(table, *config, tiny)]
     assert grown != tiny and grown[0] > tiny[0]

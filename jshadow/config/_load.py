@@ -22,6 +22,7 @@ import numpy as np
 
 from ._errors import ConfigError, did_you_mean
 from ._schema import (
+    BSV_CENTERS,
     BSV_GRADIENTS,
     ENVIRONMENT_TYPES,
     LIGHT_TYPES,
@@ -186,6 +187,7 @@ _METHOD_KEYS = (
     "radial_samples",
     "d_range",
     "bsv_method",
+    "bsv_center",
     "bsv_bands",
     "shading",
     "bsv_gradient",
@@ -216,6 +218,7 @@ def _method(t: _Table) -> MethodConfig:
         radial_samples=t.integer("radial_samples", 16, lo=2),
         d_range=d_range,
         bsv_method=t.string("bsv_method", "auto", choices=("auto", "brute", "edgescan")),
+        bsv_center=t.string("bsv_center", "box" if paper else "placed", choices=BSV_CENTERS),
         bsv_bands=(
             t.integer("bsv_bands", 4, lo=1, hi=8) if t.has("bsv_bands") else (sh_bands if paper else None)
         ),

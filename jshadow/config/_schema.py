@@ -19,6 +19,7 @@ import jax
 import numpy as np
 from jaxtyping import Array, Float
 
+from ..entities import BSV_CENTERS as BSV_CENTERS
 from ..entities import BSV_GRADIENTS as BSV_GRADIENTS
 from ..entities import LIGHT_VISIBILITIES as LIGHT_VISIBILITIES
 from ..entities import SELF_VISIBILITIES as SELF_VISIBILITIES
@@ -78,15 +79,18 @@ def _check_leaf(owner: str, name: str, value, shape: tuple[int, ...] | None, pos
 class MethodConfig(eqx.Module):
     """``[method]``: the static options of :class:`jshadow.entities.Method` (every key optional).
 
-    ``preset`` "default" | "paper" chooses the defaults of ``shell``, ``model``, ``bsv_bands`` and
-    ``shading``: the accurate setting, or the deformable-shadow-fields paper's method exactly
-    (:meth:`jshadow.entities.Method.paper`); keys given explicitly override the preset.
+    ``preset`` "default" | "paper" chooses the defaults of ``shell``, ``model``, ``bsv_bands``,
+    ``shading`` and ``bsv_center``: the accurate setting, or the deformable-shadow-fields paper's
+    method exactly (:meth:`jshadow.entities.Method.paper`); keys given explicitly override the
+    preset.
 
     ``sh_bands`` n (n² coefficients, 1..8), ``bsv_grid`` (θ, φ) sample points on the bounding sphere
     (Zhou et al. 2005 use 12×20), ``directions`` per sample point, ``dtype`` "float32" | "float64",
     ``shell`` sampling-shell radius over bounding radius (≥ 1; 1 is the paper), ``model`` "paper" |
     "sphere" (extrapolation model), ``radial_samples`` tabulated distances, ``d_range`` their range in
-    shell radii, ``bsv_method`` "auto" | "brute" | "edgescan", ``bsv_bands`` bands of the BSV and
+    shell radii, ``bsv_method`` "auto" | "brute" | "edgescan", ``bsv_center`` "placed" | "box" (a
+    deforming mesh's bounding-sphere centre: its placed ``center``, or its box centre per pose; the
+    paper's), ``bsv_bands`` bands of the BSV and
     M_k (≥ ``sh_bands``; default ``sh_bands`` + 1, or ``sh_bands`` for the paper), ``shading``
     "ratio" | "product" (see :func:`jshadow.scene.combine`), ``bsv_gradient`` "auto" | "raycast" |
     "image" (visibility in the BSV's vertex derivative, see :class:`jshadow.entities.Method`),
@@ -110,6 +114,7 @@ class MethodConfig(eqx.Module):
     radial_samples: int = eqx.field(static=True, default=16)
     d_range: tuple[float, float] = eqx.field(static=True, default=(0.2, 8.0))
     bsv_method: str = eqx.field(static=True, default="auto")
+    bsv_center: str = eqx.field(static=True, default="placed")
     bsv_bands: int | None = eqx.field(static=True, default=None)
     shading: str = eqx.field(static=True, default="ratio")
     bsv_gradient: str = eqx.field(static=True, default="auto")
@@ -140,6 +145,7 @@ class MethodConfig(eqx.Module):
                 radial_samples=self.radial_samples,
                 d_range=tuple(float(d) for d in self.d_range),
                 bsv_method=self.bsv_method,
+                bsv_center=self.bsv_center,
                 bsv_bands=self.bsv_bands,
                 shading=self.shading,
                 bsv_gradient=self.bsv_gradient,

@@ -6,6 +6,12 @@ is the cheap, deterministic one: centre = centre of the axis-aligned bounding bo
 to the farthest vertex from that centre. It is not the minimal enclosing sphere (that one is not a
 smooth or even continuous function of the vertices), but it contains every vertex and is
 piecewise smooth, so it can be recomputed every frame of a deformation and differentiated.
+
+A deforming occluder may instead keep a fixed centre (``method.bsv_center = "placed"``): its BSV is
+then sampled about the occluder's placed centre c with radius ``max_v |x_v - c|``.
+:func:`with_center_anchors` expresses that sphere in the same rule, by appending six points that
+no face references, so every sampler (and its derivative) that takes the box-centred sphere of its
+input takes the sphere about c instead.
 """
 
 from __future__ import annotations
@@ -15,7 +21,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 from .._numerics import safe_div, safe_norm, select_max, select_min
 
-__all__ = ["bounding_sphere", "normalize_to_unit_sphere"]
+__all__ = ["bounding_sphere", "normalize_to_unit_sphere", "with_center_anchors"]
 
 
 def bounding_sphere(
@@ -53,3 +59,27 @@ def normalize_to_unit_sphere(vertices: Float[ArrayLike, "... V 3"]) -> Float[Arr
     center, radius = bounding_sphere(v)
     inv_r = safe_div(1.0, radius)  # 0 (not inf) for a single point
     return (v - center[..., None, :]) * inv_r[..., None, None]
+
+
+def with_center_anchors(
+    vertices: Float[ArrayLike, "V 3"], center: Float[ArrayLike, "3"]
+) -> Float[Array, "V+6 3"]:
+    """``vertices`` followed by six anchor points ``c ± h_i e_i``, ``h_i = max_v |x_v,i - c_i|``.
+
+    The anchors make :func:`bounding_sphere` of the result the sphere about ``center``: the box of
+    the result spans ``c ± h`` per axis, so its centre is ``c`` (up to one rounding of
+    ``((c - h) + (c + h)) / 2``), and its radius is ``max_v |x_v - c|`` (no anchor is farther:
+    ``h_i <= max_v |x_v - c|``). Faces index only the first V rows, so the anchors change no
+    visibility; a BSV sampler given the result samples on the shell about ``center``. Differentiable
+    in both arguments (the centre's derivative comes from ``center`` alone, as ``h``'s two
+    contributions cancel). Shapes: vertices (V, 3), center (3,) -> (V + 6, 3).
+    """
+    v = jnp.asarray(vertices)
+    c = jnp.asarray(center, v.dtype)
+    if v.ndim != 2 or v.shape[-1] != 3 or v.shape[0] == 0:
+        raise ValueError(f"with_center_anchors expects vertices of shape (V, 3) with V >= 1, got {v.shape}")
+    if c.shape != (3,):
+        raise ValueError(f"with_center_anchors expects a centre of shape (3,), got {c.shape}")
+    h = select_max(jnp.abs(v - c), axis=0)  # (3,)
+    offsets = jnp.eye(3, dtype=v.dtype) * h  # rows h_i e_i
+    return jnp.concatenate([v, c + offsets, c - offsets], axis=0)
