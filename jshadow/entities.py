@@ -75,8 +75,8 @@ class Method:
     sits; the radius is the farthest deformed vertex from it, per frame), "box" the deformed mesh's
     own box centre, recomputed per pose (:func:`jshadow.geometry.bounding_sphere`; the paper's
     choice: its BSV is the deformed mesh's bounding sphere). The two differ only for a deformation
-    that moves the box centre; their error against the reference differs by at most 0.04 points
-    there (BENCHMARKS.md, "A fixed bounding-sphere centre"), and a fixed centre lets
+    that moves the box centre; their error against the reference differs by at most 0.09 points
+    there (relative RMSE; BENCHMARKS.md, "A fixed bounding-sphere centre"), and a fixed centre lets
     :class:`jshadow.Renderer` read frames out of the field's table (:mod:`jshadow.readout`).
 
     ``bsv_gradient`` chooses how the BSV's vertex derivative (its silhouette-edge term) decides which
