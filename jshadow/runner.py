@@ -203,12 +203,14 @@ def _centre_moves(occ, bsv, method) -> bool:
         return False
     ref = np.asarray(bsv.center)
     times = jnp.asarray([0.0, 1 / 3, 2 / 3, 1.0], ref.dtype)
-    centres = np.asarray(_box_centres(occ, method, times))
+    centres = np.asarray(_bsv_centres(occ, method, times))
     return any(_centre_moved(c, ref, bsv.shell_radius) for c in centres)
 
 
 @eqx.filter_jit
-def _box_centres(occ, method, times):
+def _bsv_centres(occ, method, times):
+    """The centres (T, 3) of the occluder's BSV at ``times`` (T,), as :func:`jshadow.scene.mesh_bsv`
+    takes them."""
     from .geometry import bounding_sphere
 
     return jax.vmap(lambda t: bounding_sphere(bsv_input_vertices(occ, occ.vertices(t), method))[0])(times)

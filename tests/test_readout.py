@@ -181,3 +181,25 @@ def test_scenes_the_readout_does_not_take_render_as_before():
     assert off.readout_frames == 0 and off.readout_reason is None
     with pytest.raises(TypeError, match="static_readout"):
         Renderer(base, static_readout="yes")
+
+
+@pytest.mark.usefixtures("x64")
+def test_the_readout_call_without_a_hashable_scene_computes_the_same():
+    # a scene whose static parts cannot key the flattened call takes eqx.filter_jit of the same
+    # function (runner._readout_and_shade): the frame of the flattened call, plane and moving own
+    # vertices alike
+    from jshadow import runner
+
+    scene = scene_with(Breathe(0.0, 0.3, period=1.0), self_shadow=True)
+    r = Renderer(scene)
+    flat, _ = r.frame(2)
+    assert r.readout_frames == 1 and r._flat[True]
+    ro, _ = r._readout
+    t = jnp.asarray(2 / 3, jnp.float64)
+    out = runner._readout_and_shade(scene, r._bsvs(t), t, r._lighting, True, ro, occlusion_table(scene))
+    points, _, e, _ = runner._with_receivers(scene, out)
+    assert e.shape == flat.irradiance.shape and e.shape[0] > scene.receivers.points.shape[0]
+    np.testing.assert_allclose(np.asarray(points), np.asarray(flat.points), rtol=0, atol=1e-15)
+    np.testing.assert_allclose(
+        np.asarray(e), np.asarray(flat.irradiance), rtol=0, atol=1e-12 * float(e.max())
+    )
