@@ -70,14 +70,17 @@ class Method:
       (exact unoccluded irradiance times the SH estimate's occluded/unoccluded ratio; exact sphere
       occluder/sphere light overlap): see :func:`jshadow.scene.combine`.
 
-    ``bsv_center`` chooses the centre of a mesh occluder's bounding sphere, about which its BSV is
-    sampled: "placed" (default) the occluder's ``center`` (where its rest pose's box-centred sphere
-    sits; the radius is the farthest deformed vertex from it, per frame), "box" the deformed mesh's
-    own box centre, recomputed per pose (:func:`jshadow.geometry.bounding_sphere`; the paper's
-    choice: its BSV is the deformed mesh's bounding sphere). The two differ only for a deformation
-    that moves the box centre; their error against the reference differs by at most 0.09 points
-    there (relative RMSE; BENCHMARKS.md, "A fixed bounding-sphere centre"), and a fixed centre lets
-    :class:`jshadow.Renderer` read frames out of the field's table (:mod:`jshadow.readout`).
+    ``bsv_center`` chooses the centre of a *deforming* mesh occluder's bounding sphere, about which
+    its BSV is sampled: "placed" (default) the occluder's ``center`` (where its rest pose's
+    box-centred sphere sits when the rest pose is normalised, as ``build_scene`` normalises it; the
+    radius is the farthest deformed vertex from it, per frame), "box" the deformed mesh's own box
+    centre, recomputed per pose (:func:`jshadow.geometry.bounding_sphere`; the paper's choice: its
+    BSV is the deformed mesh's bounding sphere). A rigid mesh always takes its box-centred sphere.
+    The two differ where the deformed mesh's box centre is not ``center``: a deformation that moves
+    it, or a rest pose not normalised about its box centre. On the three deforming scenes measured
+    their error against the reference differs by at most 0.09 points (relative RMSE; BENCHMARKS.md,
+    "A fixed bounding-sphere centre"), and a fixed centre lets :class:`jshadow.Renderer` read frames
+    out of the field's table (:mod:`jshadow.readout`).
 
     ``bsv_gradient`` chooses how the BSV's vertex derivative (its silhouette-edge term) decides which
     silhouette points are visible: "image" (the winding number of the projected silhouette in the

@@ -529,7 +529,6 @@ class Renderer:
                 self._shade_once(bsvs, t_arr, own, images, readout)
             )
             self.readout_frames += readout is not None
-        if one_call:
             t2 = time.perf_counter()
             res = RenderResult(points=points, normals=normals, irradiance=e, radiance=rad)
             times = {**first, "shading_ms": 1e3 * (t2 - t1)}
