@@ -62,10 +62,12 @@ from .visibility import (
     bsv_mesh_edgescan,
     bsv_mesh_edgescan_diff,
     bsv_mesh_edgescan_of,
+    bsv_mesh_edgescan_scan_diff,
     bsv_silhouette_counts,
     bsv_sphere,
     bsv_with_occlusion_images,
     edgescan_grad_slots,
+    edgescan_scan_slots,
     edgescan_slots,
     image_fan_visibility_components,
     is_closed_manifold,
@@ -224,17 +226,20 @@ def _differentiable_coeffs(occ: MeshOccluder, v, faces: np.ndarray | None, m, kw
     """BSV coefficients of ``v`` carrying the silhouette derivative that ``m.bsv_gradient`` selects."""
     if faces is None:  # the forward pass works; a derivative would silently miss the silhouette term
         return _no_derivative_guard(lambda x: bsv_mesh(x, occ.faces, method=m.bsv_method, **kw).coeffs, v)
-    if bsv_gradient_mode(m, faces) == "image":
+    mode = bsv_gradient_mode(m, faces)
+    if mode in ("image", "scanline"):
         if not is_closed_manifold(faces):
             raise ValueError(
-                "method.bsv_gradient = 'image' needs the edge-scan sampler, i.e. a closed, consistently "
+                f"method.bsv_gradient = {mode!r} needs the edge-scan sampler, i.e. a closed, consistently "
                 "wound manifold mesh; this occluder's mesh is not (use bsv_gradient = 'raycast')"
             )
         # the derivative's sizes are measured when a derivative is traced, not by a forward pass
+        es = _edgescan_slots(occ, faces, m)
+        if mode == "scanline":
+            scan_slots = _scan_grad_slots(occ, faces, m, lazy=True)
+            return bsv_mesh_edgescan_scan_diff(v, faces, slots=es, scan_slots=scan_slots, **kw)
         grad_slots = _image_grad_slots(occ, faces, m, lazy=True)
-        return bsv_mesh_edgescan_diff(
-            v, faces, slots=_edgescan_slots(occ, faces, m), grad_slots=grad_slots, **kw
-        )
+        return bsv_mesh_edgescan_diff(v, faces, slots=es, grad_slots=grad_slots, **kw)
 
     if _uses_edgescan(m, faces):
         # the edge-scan, as the eager call and the Renderer compute it: bsv_mesh would cast rays
@@ -410,6 +415,21 @@ def _image_grad_slots(occ: MeshOccluder, faces: np.ndarray, m, lazy: bool = Fals
         return tuple(max(x) for x in zip(*gs, strict=True))
 
     return _cached_slots("image", occ, faces, m, measure, _merge_max, None, lazy=lazy)
+
+
+def _scan_grad_slots(occ: MeshOccluder, faces: np.ndarray, m, lazy: bool = False):
+    """Derivative sizes for ``bsv_gradient = "scanline"`` (:func:`jshadow.visibility.edgescan_scan_slots`,
+    1.5 margin): the largest over the rest pose and five poses of the animation, measured as
+    :func:`_image_grad_slots` measures its own (lazily, when a derivative is first traced); None —
+    the column slots for the rows and no compaction, slower — if unknown."""
+
+    def measure(poses):
+        grid, shell, directions = m.bsv_grid, m.shell, m.directions
+        es = _edgescan_slots(occ, faces, m)
+        ss = [edgescan_scan_slots(v, faces, grid, directions, shell, slots=es) for v in poses]
+        return tuple(max(x) for x in zip(*ss, strict=True))
+
+    return _cached_slots("scanline", occ, faces, m, measure, _merge_max, None, lazy=lazy)
 
 
 SELF_RAYS_NO_DERIVATIVE = (

@@ -82,7 +82,7 @@ class StretchY(eqx.Module):
         return x * jnp.asarray([1.0, 1.0 + self.a, 1.0])
 
 
-@pytest.mark.parametrize("setting", ["paper", "raycast", "image"])
+@pytest.mark.parametrize("setting", ["paper", "raycast", "image", "scanline"])
 def test_stretch_gradient_comes_from_the_silhouette_and_matches_finite_differences(setting):
     # Stretching changes the BSV itself: without the silhouette term the BSV's derivative would be
     # zero (binary visibility). Finite differences use a finer direction grid. a0 = 0.2, not 0: at
@@ -91,9 +91,9 @@ def test_stretch_gradient_comes_from_the_silhouette_and_matches_finite_differenc
     # On the default 1.5 r shell the ray-cast silhouette integral needs more directions to converge
     # (16²: 10 % low), so that setting's gradient is taken at 48²; the image-plane one converges
     # sooner (measured 0.4 / 1.2 / 0.6 / 0.7 % from the differences at 16² / 24² / 32² / 48²) and is
-    # taken at 16². Finite differences are noisy at 48² (binary visibility: ±15 % at h = 0.05), so
-    # they use 128² rays (brute force: the derivative is that of the exact integral, whichever
-    # quadrature).
+    # taken at 16², as is the scanline one (0.9 / 0.4 / 0.8 % at 16² / 24² / 32²). Finite
+    # differences are noisy at 48² (binary visibility: ±15 % at h = 0.05), so they use 128² rays
+    # (brute force: the derivative is that of the exact integral, whichever quadrature).
     def loss_with(method):
         def loss(a):
             s = scene_with(StretchY(a))
@@ -105,7 +105,7 @@ def test_stretch_gradient_comes_from_the_silhouette_and_matches_finite_differenc
     if setting == "paper":
         method, fine = METHOD, Method.paper(bsv_grid=(8, 12), directions=(48, 48))
     else:  # the 1.5 r shell: visibility of silhouette nodes by rays, or in the edge-scan's image plane
-        gradient, d = ("image", 16) if setting == "image" else ("raycast", 48)
+        gradient, d = {"image": ("image", 16), "scanline": ("scanline", 16)}.get(setting, ("raycast", 48))
         method = Method(bsv_grid=(8, 12), directions=(d, d), bsv_gradient=gradient)
         fine = Method(bsv_grid=(8, 12), directions=(128, 128), bsv_method="brute")
     a0, h = jnp.float32(0.2), 0.05

@@ -93,7 +93,7 @@ class MethodConfig(eqx.Module):
     paper's), ``bsv_bands`` bands of the BSV and
     M_k (≥ ``sh_bands``; default ``sh_bands`` + 1, or ``sh_bands`` for the paper), ``shading``
     "ratio" | "product" (see :func:`jshadow.scene.combine`), ``bsv_gradient`` "auto" | "raycast" |
-    "image" (visibility in the BSV's vertex derivative, see :class:`jshadow.entities.Method`),
+    "image" | "scanline" (visibility in the BSV's vertex derivative, see :class:`jshadow.entities.Method`),
     ``self_visibility`` "field" | "rays" (an occluder's visibility at its own vertices with
     ``self_shadow``: extrapolated by the field, or cast from each vertex) and
     ``self_visibility_grid`` (θ, φ) ray directions over each vertex's normal hemisphere for "rays",

@@ -10,6 +10,8 @@
 * :mod:`._edgescan_grad`: the edge-scan BSV's vertex gradient in the image plane, with the
   visibility of each silhouette point from the winding number of the projected silhouette (exact;
   11–31× faster than the ray-cast visibility on whole frames).
+* :mod:`._edgescan_scan`: the same derivative as a sum over the edge-scan's pixel columns and rows,
+  with the exact layer count at every crossing (faster on large meshes, noisier per vertex).
 * :mod:`._own`: a mesh's visibility of itself at its own vertices, by rays (self-shadowing).
 * :mod:`._images`: single rays looked up in the BSV's occlusion images (sharp sphere-light shadows).
 """
@@ -35,6 +37,8 @@ from ._edgescan import edgescan_cone_directions as edgescan_cone_directions
 from ._edgescan import edgescan_slots as edgescan_slots
 from ._edgescan_grad import bsv_mesh_edgescan_diff as bsv_mesh_edgescan_diff
 from ._edgescan_grad import edgescan_grad_slots as edgescan_grad_slots
+from ._edgescan_scan import bsv_mesh_edgescan_scan_diff as bsv_mesh_edgescan_scan_diff
+from ._edgescan_scan import edgescan_scan_slots as edgescan_scan_slots
 from ._frames import bsv_frames as bsv_frames
 from ._frames import bsv_grid_angles as bsv_grid_angles
 from ._images import OcclusionImages as OcclusionImages

@@ -351,44 +351,62 @@ def _stage_gather(slot, px, py, col, front, a, b, t1, *, directions):
     return lo, hi, xa, ya, slope, base, sgn
 
 
-@partial(jax.jit, static_argnames=("views", "directions", "shell", "long_slots", "span"))
-def _stage_emit(params, most, *, views, directions, shell, long_slots, span):
-    """Scatter-add of every column crossing into the difference images (G, N_x, N_y + 1)."""
+def _tiers(params, most, *, directions, shell, long_slots, span):
+    """Every column crossing of the slotted (edge, view) pairs, and the counts the tiers needed.
+
+    Every slot gives its first crossing; the slots spanning more columns are compacted into S2 slots
+    that give the second crossing, and those spanning more than two into S3 slots that give the
+    crossings 2 … K − 1. Returns a dict of (C,) arrays, ``C = S + S2 + S3·(K − 2)``: ``sid`` (the
+    slot), ``col`` (j), ``y`` (the crossing's height), ``row`` (pixel centres at or below it: its row
+    in the difference image), ``cell`` (flat (view, column, row) index of the difference images),
+    ``w`` (±1: the change of the layer count going up) and ``valid``; and the needed ``(S, S2, S3,
+    K)`` (4,) int32.
+    """
     ny, nx = directions
     tan_a = 1.0 / math.sqrt(shell * shell - 1.0)
     dx, dy = 2.0 * tan_a / nx, 2.0 * tan_a / ny
     s2, s3 = long_slots
-    lo, hi, xa, ya, slope, base, sgn = params
-    dtype = xa.dtype
-    n_slots = lo.shape[0]
-    size = views * (ny + 1) * nx
+    lo, hi = params[0], params[1]
+    dtype = params[2].dtype
+    p1 = (*params, jnp.arange(lo.shape[0], dtype=jnp.int32))
 
-    def crossing(k, lo, hi, xa, ya, slope, base, *_):
-        j = lo + k
+    def longer(p, than, n):
+        """The entries of ``p`` spanning more than ``than`` columns, compacted into n slots."""
+        pos, count = _compact(_pack(p[1] - p[0] > than), n)
+        out = [x[jnp.maximum(pos, 0)] for x in p]
+        out[1] = jnp.where(pos >= 0, out[1], out[0])  # empty slots span nothing
+        return tuple(out), count
+
+    p2, n2 = longer(p1, 1, s2)
+    p3, n3 = longer(p2, 2, s3)
+    out = {k: [] for k in ("sid", "col", "y", "row", "cell", "w", "valid")}
+    tiers = [(p1, 0), (p2, 1)] + [(p3, k) for k in range(2, span)]
+    for (lo_, hi_, xa, ya, slope, base, sgn, sid), k in tiers:
+        j = lo_ + k
         xj = (j.astype(dtype) + 0.5) * dx - tan_a
         y = ya + (xj - xa) * slope
         row = jnp.clip(jnp.floor((y + tan_a) / dy - 0.5) + 1.0, 0, ny).astype(jnp.int32)  # rows y_i ≤ y
-        return jnp.where(j < hi, base + j * (ny + 1) + row, size)
+        for key, val in (("sid", sid), ("col", j), ("y", y), ("row", row), ("w", sgn), ("valid", j < hi_)):
+            out[key].append(val)
+        out["cell"].append(base + j * (ny + 1) + row)
+    need = jnp.stack([most, n2, n3, jnp.max(hi - lo)]).astype(jnp.int32)  # vs static (S, S2, S3, K)
+    return {k: jnp.concatenate(v) for k, v in out.items()}, need
 
-    def longer(params, than, n):
-        """The entries of ``params`` spanning more than ``than`` columns, compacted into n slots."""
-        lo, hi = params[0], params[1]
-        pos, count = _compact(_pack(hi - lo > than), n)
-        out = [x[jnp.maximum(pos, 0)] for x in params]
-        out[1] = jnp.where(pos >= 0, out[1], out[0])  # empty slots span nothing
-        return out, count
 
-    # every slot emits its first crossing; the slots spanning more columns are compacted into
-    # S2 slots that emit the second crossing, and those spanning more than two into S3 slots that
-    # emit the crossings 2 … K − 1
-    params2, n2 = longer(params, 1, s2)
-    params3, n3 = longer(params2, 2, s3)
-    idx = [crossing(0, *params), crossing(1, *params2)] + [crossing(k, *params3) for k in range(2, span)]
-    val = [sgn, params2[6]] + [params3[6]] * max(span - 2, 0)
-    diff = jnp.zeros((size,), dtype).at[jnp.concatenate(idx)].add(jnp.concatenate(val), mode="drop")
-    counts = jnp.stack([most, n2, n3, jnp.max(hi - lo)])  # needed vs static (S, S2, S3, K)
-    overflow = jnp.any(counts > jnp.asarray([n_slots, s2, s3, span], jnp.int32))
-    return diff.reshape(views, nx, ny + 1), overflow, counts
+@partial(jax.jit, static_argnames=("views", "directions", "shell", "long_slots", "span", "with_crossings"))
+def _stage_emit(params, most, *, views, directions, shell, long_slots, span, with_crossings=False):
+    """Scatter-add of every column crossing (:func:`_tiers`) into the difference images
+    (G, N_x, N_y + 1); the overflow flag and the needed counts; with ``with_crossings`` also the
+    crossings."""
+    ny, nx = directions
+    n_slots = params[0].shape[0]
+    size = views * (ny + 1) * nx
+    cr, need = _tiers(params, most, directions=directions, shell=shell, long_slots=long_slots, span=span)
+    idx = jnp.where(cr["valid"], cr["cell"], size)
+    diff = jnp.zeros((size,), cr["y"].dtype).at[idx].add(cr["w"], mode="drop")
+    overflow = jnp.any(need > jnp.asarray([n_slots, *long_slots, span], jnp.int32))
+    out = (diff.reshape(views, nx, ny + 1), overflow, need)
+    return (*out, cr) if with_crossings else out
 
 
 # --------------------------------------------------------------------------------------------
@@ -502,7 +520,11 @@ def staged(live, fn, *args):
     return lax.cond(live, fn, lambda *_: jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), shapes), *args)
 
 
-def _run(vertices, faces, table, grid, directions, shell, slots):
+def _run(vertices, faces, table, grid, directions, shell, slots, with_params=False):
+    """The edge-scan pass: difference images (G, N_x, N_y + 1), overflow flag, needed counts, centre
+    and radius; with ``with_params`` also the slots and their per-slot parameters (stage 5), which the
+    scanline derivative (:mod:`._edgescan_scan`) reads: the slots, the crossings of
+    :func:`_tiers` and the projection (image x, y per (vertex, view) and facing per (face, view))."""
     s, s2, s3, k = slots
     center, radius, comps, offset = _stage_views(vertices, faces, grid=grid, shell=shell)
     stage = partial(staged, always(radius))
@@ -513,13 +535,21 @@ def _run(vertices, faces, table, grid, directions, shell, slots):
         partial(_stage_gather, directions=directions), slot, px, py, col, front, table.a, table.b, table.t1
     )
     emit = partial(
-        _stage_emit, views=grid[0] * grid[1], directions=directions, shell=shell, long_slots=(s2, s3), span=k
+        _stage_emit,
+        views=grid[0] * grid[1],
+        directions=directions,
+        shell=shell,
+        long_slots=(s2, s3),
+        span=k,
+        with_crossings=with_params,
     )
-    diff, overflow, counts = stage(emit, params, most)
+    diff, overflow, counts, *crossings = stage(emit, params, most)
+    if with_params:
+        return diff, overflow, counts, center, radius, (slot, crossings[0], (px, py, front))
     return diff, overflow, counts, center, radius
 
 
-_run_jit = jax.jit(_run, static_argnums=(3, 4, 5, 6))
+_run_jit = jax.jit(_run, static_argnums=(3, 4, 5, 6), static_argnames=("with_params",))
 
 
 def edgescan_slots(
