@@ -14,8 +14,8 @@ same receivers:
   (V, 3) added to the mesh's rest pose, w fixed random weights — the differentiable forward pass;
 * ``value_and_grad``: ``jax.value_and_grad(L)`` at δ = 0, the visibility-correct vertex gradient
   (silhouette-edge term of the BSV, differentiable field and combination), with the silhouette
-  visibility of ``[method] bsv_gradient`` (``--bsv-gradient raycast image`` times both and reports
-  the relative difference and cosine between the two gradients).
+  visibility of ``[method] bsv_gradient`` (``--bsv-gradient raycast image scanline`` times each and
+  reports the relative difference and cosine between their gradients).
 
 Compile time (first call minus warm median) is reported separately; warm figures are medians of
 ``--runs`` calls with ``block_until_ready``. "backward / forward" is (value_and_grad − forward) /
@@ -37,6 +37,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from bench_bsv_grad import _time as _time_stats  # the script's folder is on sys.path
+from bench_render import machine_probe
 
 from jshadow.config import build_scene, config_from_dict
 from jshadow.entities import MeshOccluder, frame_time
@@ -110,7 +111,7 @@ def bench(path: str, runs: int, bsv_gradient: str = "raycast") -> dict:
     }
     _GRADIENTS[(path, bsv_gradient)] = g
     print(
-        f"{path:32s} {bsv_gradient:7s} V={row['vertices']:5d} rec={n_rec:6d}  render {render_ms:7.1f} ms"
+        f"{path:32s} {bsv_gradient:8s} V={row['vertices']:5d} rec={n_rec:6d}  render {render_ms:7.1f} ms"
         f"  forward {fwd_ms:7.1f} ms"
         f"  value_and_grad {vag_ms:8.1f} ms  backward/forward {row['backward_over_forward']:5.2f}"
         f"  compile {c_f:4.1f} / {c_g:4.1f} s",
@@ -128,30 +129,35 @@ def main(argv=None) -> int:
         "--bsv-gradient",
         nargs="*",
         default=["image", "raycast"],
-        choices=["raycast", "image"],
+        choices=["raycast", "image", "scanline"],
         help="[method] bsv_gradient settings to time (same run; 'auto' is 'image' for these configs)",
     )
     args = ap.parse_args(argv)
     load = os.getloadavg()[0]
     rows = [bench(c, args.runs, g) for c in args.configs for g in args.bsv_gradient]
-    for c in args.configs:  # the "image" gradient against the ray-cast one, same loss and pose
-        if (c, "image") in _GRADIENTS and (c, "raycast") in _GRADIENTS:
-            a, b = _GRADIENTS[(c, "image")].ravel(), _GRADIENTS[(c, "raycast")].ravel()
+    # each gradient against the ray-cast one (and "scanline" against "image"), same loss and pose
+    pairs = [("image", "raycast"), ("scanline", "raycast"), ("scanline", "image")]
+    for c in args.configs:
+        for mine, other in pairs:
+            if (c, mine) not in _GRADIENTS or (c, other) not in _GRADIENTS:
+                continue
+            a, b = _GRADIENTS[(c, mine)].ravel(), _GRADIENTS[(c, other)].ravel()
             cmp = {
                 "relative_difference": float(np.linalg.norm(a - b) / np.linalg.norm(b)),
                 "cosine": float(a @ b / (np.linalg.norm(a) * np.linalg.norm(b))),
                 "norm_ratio": float(np.linalg.norm(a) / np.linalg.norm(b)),
             }
             for r in rows:
-                if r["config"] == c and r["bsv_gradient"] == "image":
-                    r["against_raycast"] = cmp
-            print(f"{c:32s} image vs raycast gradient: " + "  ".join(f"{k} {v:.4f}" for k, v in cmp.items()))
+                if r["config"] == c and r["bsv_gradient"] == mine:
+                    r[f"against_{other}"] = cmp
+            print(f"{c:32s} {mine} vs {other} gradient: " + "  ".join(f"{k} {v:.4f}" for k, v in cmp.items()))
     meta = {
         "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
         "machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores",
         "device": str(jax.devices()[0]),
         "load_average_1min": [load, os.getloadavg()[0]],
         "runs": args.runs,
+        "machine_probe": machine_probe(),
     }
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)

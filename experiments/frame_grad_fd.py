@@ -1,15 +1,16 @@
-"""Whole-frame directional derivatives of both BSV gradient settings against finite differences.
+"""Whole-frame directional derivatives of the BSV gradient settings against finite differences.
 
 For a shipped deforming config at its middle frame: the loss is a weighted sum of the frame's
 irradiance (fixed random weights), the direction a smooth random motion of the mesh's rest-pose
 vertices. Central differences use a fine forward pass (``--fine`` directions per BSV point, binary
 visibility: the step must be large enough to average many pixel flips, so two steps are reported);
-the derivatives of ``[method] bsv_gradient = "raycast"`` and ``"image"`` are taken at the config's
-own resolution (32²) with ``jax.grad``.
+the derivatives of ``[method] bsv_gradient = "raycast"``, ``"image"`` and ``"scanline"`` are taken at
+the config's own resolution (32²) with ``jax.grad``.
 
 Usage (repository root, project environment active)::
 
     python experiments/frame_grad_fd.py [--configs configs/egg_breathing.toml ...] [--fine 256]
+                                        [--gradients raycast image scanline]
 
 Writes ``experiments/results/frame_grad_fd.json`` and prints a table.
 """
@@ -51,7 +52,7 @@ def _smooth_motion(rng, x, scale):
     return scale * d / np.abs(d).max()
 
 
-def check(path: str, fine: int, steps=(0.1, 0.2)) -> dict:
+def check(path: str, fine: int, gradients, steps=(0.1, 0.2)) -> dict:
     base = _scene(path, "raycast")
     occ = base.occluders[0]
     t = frame_time(base.n_frames // 2, base.n_frames)
@@ -73,7 +74,7 @@ def check(path: str, fine: int, steps=(0.1, 0.2)) -> dict:
     fine_jit = jax.jit(fine_loss)
     fd = {h: (float(fine_jit(jnp.float32(h))) - float(fine_jit(jnp.float32(-h)))) / (2 * h) for h in steps}
     row = {"config": path, "fine_directions": fine, "finite_differences": fd}
-    for gradient in ("raycast", "image"):
+    for gradient in gradients:
         loss = loss_of(_scene(path, gradient))
         loss(jnp.float32(0.0))
         row[gradient] = float(jax.jit(jax.grad(loss))(jnp.float32(0.0)))
@@ -84,16 +85,20 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--configs", nargs="*", default=DEFAULT)
     ap.add_argument("--fine", type=int, default=256)
+    ap.add_argument(
+        "--gradients",
+        nargs="*",
+        default=["raycast", "image", "scanline"],
+        choices=["raycast", "image", "scanline"],
+    )
     args = ap.parse_args(argv)
     rows = []
     for c in args.configs:
-        r = check(c, args.fine)
+        r = check(c, args.fine, args.gradients)
         rows.append(r)
         fds = "  ".join(f"h={h}: {v:10.2f}" for h, v in r["finite_differences"].items())
-        print(
-            f"{c:32s} FD ({args.fine}²) {fds}   raycast {r['raycast']:10.2f}   image {r['image']:10.2f}",
-            flush=True,
-        )
+        grads = "   ".join(f"{g} {r[g]:10.2f}" for g in args.gradients)
+        print(f"{c:32s} FD ({args.fine}²) {fds}   {grads}", flush=True)
     out = ROOT / "experiments" / "results" / "frame_grad_fd.json"
     meta = {
         "date": datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC"),
