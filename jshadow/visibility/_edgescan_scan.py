@@ -224,6 +224,10 @@ def _terms(x, cr, sigma, slot, table, *, grid, directions, shell, refine):
     crosses = valid & (run != 0)
     run = jnp.where(crosses, run, 1.0)  # double where: no division for padding
     slope = jnp.where(crosses, (yb - ya) / run, 0.0)
+    # an edge steeper than 1e6 along this scan has a share below 1e-12 here (the other scan takes
+    # it): dropped, so that a near-zero run cannot make the slope overflow (inf · 0 below)
+    crosses = crosses & (jnp.abs(slope) < 1e6)
+    slope = jnp.where(crosses, slope, 0.0)
     lines = jnp.where(tr, ny, nx)  # lines of this scan (columns: N_x; rows: N_y)
     heights = jnp.where(tr, nx, ny) * refine  # table intervals along one line
     spacing = 2.0 * tan_a / lines
