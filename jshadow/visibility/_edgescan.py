@@ -577,16 +577,22 @@ def edgescan_slots(
     vertices, faces, table = _prepare(vertices, faces, edge_table)
     _, _, comps, offset = _stage_views(vertices, faces, grid=grid, shell=shell)
     _, _, col, front = _stage_project(comps, offset, directions=directions, shell=shell)
-    col, front = np.asarray(col), np.asarray(front)
+    return _slots_of_starts(col, np.asarray(front), table, margin, directions[1])
+
+
+def _slots_of_starts(start, front, table, margin, width):
+    """``(S, S2, S3, K)`` from the start indices (V, G) of one scan and the facing (F, G) (host
+    arrays): the silhouette pairs spanning more than 0, 1 and 2 scan lines and the longest span,
+    times ``margin`` (shared by the column scan and the scanline derivative's row scan)."""
     a, b, t1, t2 = (np.asarray(x) for x in (table.a, table.b, table.t1, table.t2))
-    col = col.astype(np.int64)
-    span = np.abs(col[a] - col[b]) * (front[t1] != front[t2])  # (E_pad, G)
+    start = np.asarray(start).astype(np.int64)
+    span = np.abs(start[a] - start[b]) * (front[t1] != front[t2])  # (E_pad, G)
     e_pad = int(a.shape[0])
     s = min(_round_up(max(1, math.ceil(int(np.sum(span > 0)) * margin)), _WORD), e_pad * span.shape[1])
     # S2, S3 and K are small: an additive slack on top of the margin costs next to nothing
     s2 = _round_up(math.ceil(int(np.sum(span > 1)) * margin) + 256, _WORD)
     s3 = math.ceil(int(np.sum(span > 2)) * margin) + 64
-    k = min(math.ceil(int(np.max(span)) * margin) + 1, directions[1])
+    k = min(math.ceil(int(np.max(span)) * margin) + 1, width)
     return s, s2, s3, k
 
 

@@ -75,6 +75,7 @@ from ._edgescan import (
     _round_up,
     _run,
     _slot_bounds,
+    _slots_of_starts,
     _stage_candidates,
     _stage_counts,
     _stage_gather,
@@ -366,11 +367,11 @@ def edgescan_scan_slots(
     margin: float = 1.5,
     edge_table: EdgeTable | None = None,
     slots: tuple[int, int, int, int] | None = None,
-) -> tuple[int, int, int, int, int, int]:
+) -> tuple[int, int, int, int, int]:
     """Static sizes for :func:`bsv_mesh_edgescan_scan_diff`'s ``scan_slots``, measured on a concrete
     pose, times ``margin``: the row scan's ``(S, S2, S3, K)`` (as :func:`edgescan_slots` for the
-    columns) and the boundary crossings (σ ≠ 0) of the column and of the row scan (the bunny at 32²:
-    about a fifth of its crossings). ``slots``: the forward pass's (None: measured on the first pose
+    columns) and the boundary crossings (σ ≠ 0) of both scans together (the bunny at 32²: about a fifth
+    of its crossings). ``slots``: the forward pass's (None: measured on the first pose
     of this topology, as :func:`bsv_mesh_edgescan` does)."""
     if not (isinstance(margin, int | float) and margin >= 1.0):
         raise ValueError(f"margin must be a number >= 1, got {margin!r}")
@@ -382,17 +383,9 @@ def edgescan_scan_slots(
     # the row scan's slots: edgescan_slots of the transposed image, counted on the host
     _, _, comps, offset = _stage_views(vertices, faces_j, grid=grid, shell=shell)
     _, py, _, front = _stage_project(comps, offset, directions=directions, shell=shell)
-    start = np.asarray(_start_rows(py, directions=directions, shell=shell)).astype(np.int64)
-    front = np.asarray(front)
-    a, b, t1, t2 = (np.asarray(x) for x in (table.a, table.b, table.t1, table.t2))
-    span = np.abs(start[a] - start[b]) * (front[t1] != front[t2])
-    cap, width = int(a.shape[0]) * grid[0] * grid[1], directions[0]
-    rows = (
-        min(_round_up(max(1, math.ceil(int(np.sum(span > 0)) * margin)), _WORD), cap),
-        _round_up(math.ceil(int(np.sum(span > 1)) * margin) + 256, _WORD),
-        math.ceil(int(np.sum(span > 2)) * margin) + 64,
-        min(math.ceil(int(np.max(span)) * margin) + 1, width),
-    )
+    start = _start_rows(py, directions=directions, shell=shell)
+    cap, width = int(table.a.shape[0]) * grid[0] * grid[1], directions[0]
+    rows = _slots_of_starts(start, np.asarray(front), table, margin, width)
     rows = _check_slots(rows, cap, width)
     # boundary crossings: one pass without compaction (sizes grown and rerun if the pose needs more),
     # with the row slots rounded up to powers of two so that the poses of one mesh share its
