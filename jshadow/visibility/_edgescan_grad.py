@@ -75,6 +75,7 @@ import numpy as np
 from jax import lax
 from jaxtyping import Array, ArrayLike, Float, Int
 
+from .._sorting import argsort_keys, sort_keys
 from ..sh._grids import _np_sh_basis
 from ._bsv import bsv_sample_points
 from ._bsv_grad import _sample_points  # sample points p = c(X) + shell·r(X)·u and frames
@@ -369,11 +370,11 @@ def _pixel_lists(pair, filled, *, directions, shell, views, piece_slots, window)
     ``start`` and length ``size`` ((G·N_y·N_x,) each, row-major pixels); and the overflow flag.
 
     The entries are expanded in the order of the pairs (grouped by view) and sorted by one int32 key
-    (view, pixel, entry within the view): XLA:CPU sorts one operand about 4× faster than a key with
-    a payload. The (view, pixel) part takes ``b = ⌈log₂(G·N_y·N_x + 1)⌉`` bits and the entry index
-    the other ``31 − b`` (the default 12×20 views at 32²: 8192 entries per view); a view with more
-    entries sets the overflow flag. When fewer than 12 bits would remain, the slower two-operand
-    sort is used instead.
+    (view, pixel, entry within the view) (:func:`jshadow._sorting.sort_keys`: NumPy's sort on the
+    CPU): a sort of one operand is several times faster than an argsort. The (view, pixel) part
+    takes ``b = ⌈log₂(G·N_y·N_x + 1)⌉`` bits and the entry index the other ``31 − b`` (the default
+    12×20 views at 32²: 8192 entries per view); a view with more entries sets the overflow flag.
+    When fewer than 12 bits would remain, the slower stable argsort of the keys is used instead.
     """
     ny, nx = directions
     q = piece_slots
@@ -401,13 +402,14 @@ def _pixel_lists(pair, filled, *, directions, shell, views, piece_slots, window)
         view_first = _cumsum(per_view) - per_view
         idx = i - view_first[view]
         packed = jnp.where(valid, (key << idx_bits) | idx, jnp.iinfo(jnp.int32).max)
-        s = jnp.sort(packed)
+        s = sort_keys(packed)
         skey = s >> idx_bits
         sview = jnp.minimum(skey // (ny * nx), views - 1)
         sowner = owner[jnp.clip(view_first[sview] + (s & ((1 << idx_bits) - 1)), 0, q - 1)]
         overflow = jnp.max(jnp.where(valid, idx, 0)) >= (1 << idx_bits)
     else:
-        skey, sowner = lax.sort((key, owner), num_keys=1)
+        perm = argsort_keys(key.astype(jnp.uint32))
+        skey, sowner = key[perm], owner[perm]
         overflow = jnp.zeros((), bool)
     slot_id = jnp.arange(k.shape[0]).astype(pair["ax"].dtype)
     data = jnp.stack([pair["ax"], pair["ay"], pair["bx"], pair["by"], pair["w"], slot_id], axis=-1)

@@ -23,9 +23,11 @@ The count before a crossing is exact: the forward pass's count at the pixel cent
 the signed crossings between that centre and it. The row scan runs the forward pass's slot stages on
 the transposed image; its count at a pixel centre is the column scan's, negated (a transposition
 reverses orientation; only count = 0 matters). The crossings of one cell (between two pixel centres
-on a line) are ordered by one sort of uint32 keys (cell, height in the cell, sign) over both scans;
-the height is quantised to 1/2^12 of a pixel at the default sizes, so crossings closer than that
-may be taken in either order. No ray is cast and no per-pixel list is built.
+on a line) are ordered by one stable argsort of uint32 keys (cell, height in the cell, sign) over
+both scans (:func:`jshadow._sorting.argsort_keys`: NumPy's sort on the CPU, where XLA's sort with a
+payload is slow); the height is quantised to 1/2^12 of a pixel at the default sizes, so crossings
+closer than that may be taken in either order (equal keys in the order of the crossing list). No
+ray is cast and no per-pixel list is built.
 
 The crossing of edge (a, b) with column x_j is ``y_c = y_a + (x_j − x_a)·s``. With
 ``t = (x_j − x_a)/(x_b − x_a)``, local coordinates ``q = Fᵀ(X − p)`` and the line's normal
@@ -58,6 +60,7 @@ import numpy as np
 from jax import lax
 from jaxtyping import Array, ArrayLike, Float, Int
 
+from .._sorting import PAD, argsort_keys
 from ..sh._grids import _np_sh_basis
 from ._bsv_grad import _sample_points
 from ._edgescan import (
@@ -152,7 +155,8 @@ def _boundary_sign(cr, counts, *, views, directions, shell):
     """σ per crossing (C,): +1 where its scan line leaves the occluded set going up (rows: right),
     −1 where it enters it, 0 elsewhere and on padding; from the exact layer count just before the
     crossing: the count at the pixel centre before it plus the signed crossings between the two
-    (those of the same cell, found by one sort of uint32 keys (cell, height in the cell, sign))."""
+    (those of the same cell, found by one stable argsort of uint32 keys (cell, height in the cell,
+    sign); padding takes the key ``PAD`` and is left out of the CPU sort)."""
     ny, nx = directions
     tan_a = 1.0 / math.sqrt(shell * shell - 1.0)
     cbits, fbits = _key_bits(views, directions)
@@ -161,9 +165,10 @@ def _boundary_sign(cr, counts, *, views, directions, shell):
     step = 2.0 * tan_a / lines
     frac = (cr["y"] + tan_a) / step - 0.5 - (row - 1).astype(cr["y"].dtype)  # from the centre before
     yq = jnp.clip(jnp.floor(frac * (1 << fbits)), 0, (1 << fbits) - 1).astype(jnp.uint32)
-    cellu = jnp.where(valid, cell, (1 << cbits) - 1).astype(jnp.uint32)
-    key = (cellu << (fbits + 1)) | (yq << 1) | (w > 0).astype(jnp.uint32)
-    sk = jnp.sort(key)
+    key = (cell.astype(jnp.uint32) << (fbits + 1)) | (yq << 1) | (w > 0).astype(jnp.uint32)
+    key = jnp.where(valid, key, jnp.uint32(PAD))  # a valid cell is below the all-ones one
+    perm = argsort_keys(key)
+    sk = key[perm]
     scell = sk >> (fbits + 1)
     sw = jnp.where((sk & 1) == 1, 1, -1).astype(jnp.int32)
     idx = jnp.arange(sk.shape[0], dtype=jnp.int32)
@@ -171,7 +176,7 @@ def _boundary_sign(cr, counts, *, views, directions, shell):
     start = lax.associative_scan(jnp.maximum, jnp.where(first, idx, 0))
     cs = _cumsum(sw)
     before = cs - sw - (cs[start] - sw[start])  # signed crossings earlier in the same cell
-    extra = before[jnp.searchsorted(sk, key, side="left", method="scan")]
+    extra = jnp.zeros_like(before).at[perm].set(before, unique_indices=True)
     offset = jnp.where(tr, views * nx * (ny + 1), 0)
     line = (cell - offset - row) // (lines + 1)  # view·(lines of the scan) + line
     flat = jnp.where(tr, views * nx * ny, 0) + line * lines + row - 1
