@@ -191,6 +191,11 @@ def mesh_bsv(occ: MeshOccluder, t, scene: Scene, differentiable: bool = True) ->
     if not differentiable:
         return bsv_mesh(v, occ.faces, method=m.bsv_method, **kw)
     center, radius = bounding_sphere(v)
+    if _placed(occ, m):
+        # the same centre (up to one rounding), but with no dependence on the vertices: the box
+        # centre of the anchored vertices has an identically zero vertex derivative that reverse
+        # mode would still carry through every receiver's direction and SH rotation
+        center = jnp.asarray(occ.center, v.dtype)
     coeffs = _differentiable_coeffs(occ, v, faces, m, kw)
     return BSV(coeffs=coeffs, center=center, radius=radius, shell_radius=m.shell * radius)
 

@@ -19,7 +19,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
-from .._numerics import safe_div, safe_norm, select_max, select_min
+from .._numerics import eps, safe_div, safe_norm, select_max, select_min
 
 __all__ = ["bounding_sphere", "normalize_to_unit_sphere", "with_center_anchors"]
 
@@ -64,15 +64,21 @@ def normalize_to_unit_sphere(vertices: Float[ArrayLike, "... V 3"]) -> Float[Arr
 def with_center_anchors(
     vertices: Float[ArrayLike, "V 3"], center: Float[ArrayLike, "3"]
 ) -> Float[Array, "V+6 3"]:
-    """``vertices`` followed by six anchor points ``c ± h_i e_i``, ``h_i = max_v |x_v,i - c_i|``.
+    """``vertices`` followed by six anchor points ``c ± h_i e_i``, ``h_i = max_v |x_v,i - c_i|``
+    widened by ten rounding units (``eps(dtype) · (|c_i| + h_i)``).
 
     The anchors make :func:`bounding_sphere` of the result the sphere about ``center``: the box of
     the result spans ``c ± h`` per axis, so its centre is ``c`` (up to one rounding of
-    ``((c - h) + (c + h)) / 2``), and its radius is ``max_v |x_v - c|`` (no anchor is farther:
-    ``h_i <= max_v |x_v - c|``). Faces index only the first V rows, so the anchors change no
-    visibility; a BSV sampler given the result samples on the shell about ``center``. Differentiable
-    in both arguments (the centre's derivative comes from ``center`` alone, as ``h``'s two
-    contributions cancel). Shapes: vertices (V, 3), center (3,) -> (V + 6, 3).
+    ``((c - h) + (c + h)) / 2``), and its radius is ``max_v |x_v - c|`` (no anchor is farther, up
+    to the widening: ``h_i <= max_v |x_v - c|``). Faces index only the first V rows, so the anchors
+    change no visibility; a BSV sampler given the result samples on the shell about ``center``.
+    Differentiable in both arguments: the centre's derivative comes from ``center`` alone, as
+    ``h``'s two contributions cancel. That needs the anchors to be the box's only extremes: a mesh
+    normalised about its centre has, at rest, a vertex at ``c_i - h_i`` as well as one at
+    ``c_i + h_i``, and a vertex tied with an anchor would take the extreme's derivative (first of
+    ties, :func:`jshadow._numerics.select_min`), so the centre would follow half of each extreme
+    vertex's motion. The widening makes the anchors strictly outermost. Shapes: vertices (V, 3),
+    center (3,) -> (V + 6, 3).
     """
     v = jnp.asarray(vertices)
     c = jnp.asarray(center, v.dtype)
@@ -81,5 +87,6 @@ def with_center_anchors(
     if c.shape != (3,):
         raise ValueError(f"with_center_anchors expects a centre of shape (3,), got {c.shape}")
     h = select_max(jnp.abs(v - c), axis=0)  # (3,)
+    h = h + eps(v.dtype) * (jnp.abs(c) + h)  # strictly beyond every vertex: no ties with the box
     offsets = jnp.eye(3, dtype=v.dtype) * h  # rows h_i e_i
     return jnp.concatenate([v, c + offsets, c - offsets], axis=0)
