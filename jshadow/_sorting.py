@@ -1,9 +1,10 @@
 """Sorting integer keys: NumPy's sorts on the CPU, XLA's elsewhere.
 
 XLA:CPU sorts with a generic comparator, element by element. Measured on the 2-core CPU
-(``python benchmarks/bench_sort.py``): a sort of 201k uint32 keys takes about 13 ms there and a
-stable argsort (a sort with an index payload) about 85 ms, where NumPy's vectorised sort takes
-2 ms and this module's argsort (one sort of 64-bit words, key above index) about 8 ms. The
+(``python benchmarks/bench_sort.py``, 201k uint32 keys, 43 % of them padding): XLA's sort takes
+about 13 ms there and its stable argsort (a sort with an index payload) about 70 ms, where NumPy's
+vectorised sort takes 2 ms and this module's argsort (one sort of 64-bit words, key above index,
+padding left out) about 6 ms. The
 silhouette derivatives of the BSV sort that many keys per call, so on the CPU they sort through a
 host callback (:func:`jax.pure_callback`). :func:`jax.lax.platform_dependent` picks the branch when
 the computation is lowered: on any other platform (a GPU) the same functions run XLA's sort, which
