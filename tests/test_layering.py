@@ -12,6 +12,7 @@ LAYER = {
     "_types": 0,
     "_numerics": 0,
     "_parallel": 0,
+    "_sorting": 0,
     "sh": 1,
     "geometry": 1,
     "entities": 2,
