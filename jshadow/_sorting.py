@@ -52,6 +52,22 @@ def _np_sort(keys: np.ndarray) -> np.ndarray:
     return np.sort(np.asarray(keys), axis=-1)
 
 
+def _dispatch(name, keys, dtypes, host, out_dtype, xla):
+    """Validate ``keys`` for ``name``, then ``host`` through a callback on the CPU, ``xla`` elsewhere."""
+    keys = jnp.asarray(keys)
+    if keys.dtype not in dtypes:
+        allowed = " or ".join(str(jnp.dtype(d)) for d in dtypes)
+        raise TypeError(f"{name} sorts {allowed} keys, got {keys.dtype}")
+    if keys.ndim == 0:
+        raise ValueError(f"{name} needs at least one axis")
+
+    def cpu(k):
+        out = jax.ShapeDtypeStruct(k.shape, out_dtype or k.dtype)
+        return jax.pure_callback(host, out, k, vmap_method="expand_dims")
+
+    return jax.lax.platform_dependent(keys, cpu=cpu, default=xla)
+
+
 def argsort_keys(keys: Shaped[Array, "*batch n"]) -> Int[Array, "*batch n"]:
     """Stable argsort of uint32 keys along the last axis: indices (int32) that put ``keys`` in
     ascending order, equal keys in index order.
@@ -59,32 +75,15 @@ def argsort_keys(keys: Shaped[Array, "*batch n"]) -> Int[Array, "*batch n"]:
     Keys equal to :data:`PAD` sort last (as their value says); the CPU branch does not sort them,
     so padding costs nothing there. ``n`` must be below 2³¹.
     """
-    keys = jnp.asarray(keys)
-    if keys.dtype != jnp.uint32:
-        raise TypeError(f"argsort_keys sorts uint32 keys, got {keys.dtype}")
-    if keys.ndim == 0:
-        raise ValueError("argsort_keys needs at least one axis")
 
-    def cpu(k):
-        out = jax.ShapeDtypeStruct(k.shape, jnp.int32)
-        return jax.pure_callback(_np_argsort, out, k, vmap_method="expand_dims")
-
-    def other(k):
+    def xla(k):
         return jnp.argsort(k, axis=-1, stable=True).astype(jnp.int32)
 
-    return jax.lax.platform_dependent(keys, cpu=cpu, default=other)
+    return _dispatch("argsort_keys", keys, (jnp.uint32,), _np_argsort, jnp.int32, xla)
 
 
 def sort_keys(keys: Int[Array, "*batch n"]) -> Int[Array, "*batch n"]:
     """Integer keys (int32 or uint32) sorted ascending along the last axis."""
-    keys = jnp.asarray(keys)
-    if keys.dtype not in (jnp.int32, jnp.uint32):
-        raise TypeError(f"sort_keys sorts int32 or uint32 keys, got {keys.dtype}")
-    if keys.ndim == 0:
-        raise ValueError("sort_keys needs at least one axis")
-
-    def cpu(k):
-        out = jax.ShapeDtypeStruct(k.shape, k.dtype)
-        return jax.pure_callback(_np_sort, out, k, vmap_method="expand_dims")
-
-    return jax.lax.platform_dependent(keys, cpu=cpu, default=lambda k: jnp.sort(k, axis=-1))
+    return _dispatch(
+        "sort_keys", keys, (jnp.int32, jnp.uint32), _np_sort, None, lambda k: jnp.sort(k, axis=-1)
+    )
