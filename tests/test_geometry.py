@@ -304,9 +304,9 @@ def test_bounding_sphere_gradient_with_ties_and_zero_radius_is_finite():
     v = jnp.array([[-1.0, 0.0, 0.0], [1.0, 0.5, 0.0], [1.0, -0.5, 0.0]])
     g = jax.grad(lambda v: bounding_sphere(v)[1] + bounding_sphere(v)[0][0])(v)
     assert bool(jnp.all(jnp.isfinite(g)))
-    # d(center_x)/d(max x) = 1/2, all of it to the first of the tied vertices
+    # d(center_x)/d(max x) = 1/2, split equally between the two tied vertices
     gx = jax.grad(lambda v: bounding_sphere(v)[0][0])(v)
-    np.testing.assert_array_equal(gx[:, 0], [0.5, 0.5, 0.0])
+    np.testing.assert_array_equal(gx[:, 0], [0.5, 0.25, 0.25])
     single = jnp.zeros((4, 3))  # all vertices equal: radius 0
     g0 = jax.grad(lambda v: bounding_sphere(v)[1])(single)
     assert bool(jnp.all(jnp.isfinite(g0)))

@@ -171,8 +171,34 @@ def test_select_max_and_min_are_the_reductions_with_one_hot_gradients(shape, axi
     np.testing.assert_array_equal(g, hot * jnp.expand_dims(weights, axis))
 
 
-def test_select_max_at_ties_gives_the_whole_gradient_to_the_first():
+def test_select_max_splits_ties_equally_and_stays_finite_for_any_rounding():
     x = jnp.asarray([2.0, -1.0, 2.0, 2.0])
-    np.testing.assert_array_equal(jax.grad(select_max)(x), [1.0, 0.0, 0.0, 0.0])
-    np.testing.assert_array_equal(jax.grad(select_min)(-x), [1.0, 0.0, 0.0, 0.0])
-    np.testing.assert_array_equal(jax.grad(select_max)(jnp.zeros(3)), [1.0, 0.0, 0.0])
+    third = 1.0 / 3.0
+    np.testing.assert_allclose(jax.grad(select_max)(x), [third, 0.0, third, third], rtol=1e-6)
+    np.testing.assert_allclose(jax.grad(select_min)(-x), [third, 0.0, third, third], rtol=1e-6)
+    np.testing.assert_allclose(jax.grad(select_max)(jnp.zeros(3)), [third] * 3, rtol=1e-6)
+    # central differences of a tied maximum measure the average of the tied derivatives
+    a = jnp.asarray([1.0, 1.0], jnp.float64 if jax.config.jax_enable_x64 else jnp.float32)
+    slope = jnp.asarray([1.0, 3.0], a.dtype)
+
+    def f(t):
+        return select_max(a + t * slope)
+
+    h = 1e-2
+    fd = (float(f(h)) - float(f(-h))) / (2 * h)
+    np.testing.assert_allclose(float(jax.grad(f)(0.0)), fd, rtol=1e-5)  # both 2, not 1 or 3
+
+
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
+def test_select_max_counts_values_within_rounding_of_the_maximum_as_ties(dtype):
+    # mirror-image vertices of a symmetric mesh end up one rounding unit apart: that is a tie
+    with jax.enable_x64(dtype == jnp.float64):
+        top = np.asarray(0.75, dtype)
+        below = np.nextafter(top, np.asarray(0.0, dtype))
+        x = jnp.asarray([below, 0.5, top], dtype)
+        np.testing.assert_allclose(jax.grad(select_max)(x), [0.5, 0.0, 0.5], rtol=1e-6)
+        # ... but not a difference of ten rounding units (the widening of with_center_anchors)
+        far = np.asarray(top - eps(dtype) * top, dtype)
+        y = jnp.asarray([far, 0.5, top], dtype)
+        np.testing.assert_array_equal(jax.grad(select_max)(y), [0.0, 0.0, 1.0])
+        np.testing.assert_array_equal(jax.grad(select_min)(-y), [0.0, 0.0, 1.0])

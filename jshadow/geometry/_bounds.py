@@ -35,10 +35,11 @@ def bounding_sphere(
     Gradients flow (piecewise-linear / piecewise-smooth): the centre's gradient reaches only the
     vertices attaining the per-axis minimum and maximum; the radius's gradient reaches the farthest
     vertex directly and, through the centre, those extreme vertices. Where several vertices tie for a
-    minimum, maximum or the farthest distance, the gradient goes to the first of them
-    (:func:`jshadow._numerics.select_max`: finite for any rounding, unlike ``jnp.max``'s rule, which
-    divides by a tie count that fused recomputation can make zero). A radius of zero (all
-    vertices equal) has a zero, not NaN, gradient.
+    minimum, maximum or the farthest distance (within 2.5 rounding units: mirror-image vertices of a
+    symmetric mesh), the gradient is split equally between them, the derivative central differences
+    measure (:func:`jshadow._numerics.select_max`: finite for any rounding, unlike ``jnp.max``'s
+    rule, which divides by a tie count that fused recomputation can make zero). A radius of zero
+    (all vertices equal) has a zero, not NaN, gradient.
     """
     v = jnp.asarray(vertices)
     if v.ndim < 2 or v.shape[-1] != 3 or v.shape[-2] == 0:
@@ -75,10 +76,10 @@ def with_center_anchors(
     Differentiable in both arguments: the centre's derivative comes from ``center`` alone, as
     ``h``'s two contributions cancel. That needs the anchors to be the box's only extremes: a mesh
     normalised about its centre has, at rest, a vertex at ``c_i - h_i`` as well as one at
-    ``c_i + h_i``, and a vertex tied with an anchor would take the extreme's derivative (first of
-    ties, :func:`jshadow._numerics.select_min`), so the centre would follow half of each extreme
-    vertex's motion. The widening makes the anchors strictly outermost. Shapes: vertices (V, 3),
-    center (3,) -> (V + 6, 3).
+    ``c_i + h_i``, and a vertex tied with an anchor would share the extreme's derivative
+    (:func:`jshadow._numerics.select_min`), so the centre would follow part of each extreme vertex's
+    motion. The widening (four times the tie tolerance of ``select_max``) makes the anchors strictly
+    outermost. Shapes: vertices (V, 3), center (3,) -> (V + 6, 3).
     """
     v = jnp.asarray(vertices)
     c = jnp.asarray(center, v.dtype)
