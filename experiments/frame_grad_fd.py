@@ -2,10 +2,12 @@
 
 For a shipped deforming config at its middle frame: the loss is a weighted sum of the frame's
 irradiance (fixed random weights), the direction a smooth random motion of the mesh's rest-pose
-vertices. Central differences use a fine forward pass (``--fine`` directions per BSV point, binary
-visibility: the step must be large enough to average many pixel flips, so two steps are reported);
-the derivatives of ``[method] bsv_gradient = "raycast"``, ``"image"`` and ``"scanline"`` are taken at
-the config's own resolution (32²) with ``jax.grad``.
+vertices. Central differences use a fine forward pass (``--fine`` directions per BSV point), at eight
+steps (0.025 … 0.2 of the motion), and a cubic is fitted through all seventeen values: the forward's
+visibility is binary, so a small step averages few pixel flips, and a large one sees the loss's
+curvature and the kinks of the bounding radius (a maximum over vertices). The derivatives of
+``[method] bsv_gradient = "raycast"``, ``"image"`` and ``"scanline"`` are taken at the config's own
+resolution (32²) with ``jax.grad``.
 
 Usage (repository root, project environment active)::
 
@@ -52,7 +54,10 @@ def _smooth_motion(rng, x, scale):
     return scale * d / np.abs(d).max()
 
 
-def check(path: str, fine: int, gradients, steps=(0.1, 0.2)) -> dict:
+STEPS = tuple(round(0.025 * k, 3) for k in range(1, 9))  # 0.025 ... 0.2
+
+
+def check(path: str, fine: int, gradients, steps=STEPS) -> dict:
     base = _scene(path, "raycast")
     occ = base.occluders[0]
     t = frame_time(base.n_frames // 2, base.n_frames)
@@ -72,8 +77,21 @@ def check(path: str, fine: int, gradients, steps=(0.1, 0.2)) -> dict:
     fine_loss = loss_of(_scene(path, "raycast", fine))
     fine_loss(jnp.float32(0.0))  # concrete rest pose once: slot sizes are measured on it
     fine_jit = jax.jit(fine_loss)
-    fd = {h: (float(fine_jit(jnp.float32(h))) - float(fine_jit(jnp.float32(-h)))) / (2 * h) for h in steps}
-    row = {"config": path, "fine_directions": fine, "finite_differences": fd}
+    values = {h: (float(fine_jit(jnp.float32(h))), float(fine_jit(jnp.float32(-h)))) for h in steps}
+    fd = {h: (p - m) / (2 * h) for h, (p, m) in values.items()}
+    # the slope at 0 of a cubic through all 2·len(steps) + 1 values
+    a = np.asarray([0.0, *steps, *(-h for h in steps)])
+    y = [
+        float(fine_jit(jnp.float32(0.0))),
+        *(p for p, _ in values.values()),
+        *(m for _, m in values.values()),
+    ]
+    row = {
+        "config": path,
+        "fine_directions": fine,
+        "finite_differences": fd,
+        "cubic_fit_slope": float(np.polyfit(a, np.asarray(y), 3)[2]),
+    }
     for gradient in gradients:
         loss = loss_of(_scene(path, gradient))
         loss(jnp.float32(0.0))
@@ -96,7 +114,8 @@ def main(argv=None) -> int:
     for c in args.configs:
         r = check(c, args.fine, args.gradients)
         rows.append(r)
-        fds = "  ".join(f"h={h}: {v:10.2f}" for h, v in r["finite_differences"].items())
+        fds = "  ".join(f"h={h}: {v:8.2f}" for h, v in r["finite_differences"].items())
+        fds += f"  cubic fit: {r['cubic_fit_slope']:8.2f}"
         grads = "   ".join(f"{g} {r[g]:10.2f}" for g in args.gradients)
         print(f"{c:32s} FD ({args.fine}²) {fds}   {grads}", flush=True)
     out = ROOT / "experiments" / "results" / "frame_grad_fd.json"
