@@ -5,7 +5,7 @@ irradiance (fixed random weights), the direction a smooth random motion of the m
 vertices. Central differences use a fine forward pass (``--fine`` directions per BSV point), at eight
 steps (0.025 … 0.2 of the motion), and a cubic is fitted through all seventeen values: the forward's
 visibility is binary, so a small step averages few pixel flips, and a large one sees the loss's
-curvature and the kinks of the bounding radius (a maximum over vertices). The derivatives of
+curvature; the fit's residuals give the forward's noise and the slope's standard error. The derivatives of
 ``[method] bsv_gradient = "raycast"``, ``"image"`` and ``"scanline"`` are taken at the config's own
 resolution (32²) with ``jax.grad``.
 
@@ -86,11 +86,19 @@ def check(path: str, fine: int, gradients, steps=STEPS) -> dict:
         *(p for p, _ in values.values()),
         *(m for _, m in values.values()),
     ]
+    y = np.asarray(y)
+    x = np.vander(a, 4)
+    coef, *_ = np.linalg.lstsq(x, y, rcond=None)
+    resid = y - x @ coef
+    noise = float(np.sqrt(np.sum(resid**2) / (len(y) - 4)))  # the forward's pixel-flip noise
     row = {
         "config": path,
         "fine_directions": fine,
+        "loss_at": dict(zip(map(float, a), map(float, y), strict=True)),
         "finite_differences": fd,
-        "cubic_fit_slope": float(np.polyfit(a, np.asarray(y), 3)[2]),
+        "cubic_fit_slope": float(coef[2]),
+        "cubic_fit_slope_se": float(noise * np.sqrt(np.linalg.inv(x.T @ x)[2, 2])),
+        "forward_noise": noise,
     }
     for gradient in gradients:
         loss = loss_of(_scene(path, gradient))
@@ -115,7 +123,7 @@ def main(argv=None) -> int:
         r = check(c, args.fine, args.gradients)
         rows.append(r)
         fds = "  ".join(f"h={h}: {v:8.2f}" for h, v in r["finite_differences"].items())
-        fds += f"  cubic fit: {r['cubic_fit_slope']:8.2f}"
+        fds += f"  cubic fit: {r['cubic_fit_slope']:8.2f} ± {r['cubic_fit_slope_se']:.2f}"
         grads = "   ".join(f"{g} {r[g]:10.2f}" for g in args.gradients)
         print(f"{c:32s} FD ({args.fine}²) {fds}   {grads}", flush=True)
     out = ROOT / "experiments" / "results" / "frame_grad_fd.json"

@@ -234,9 +234,9 @@ def select_max(x: Float[ArrayLike, "..."], axis: int = -1) -> Float[Array, "..."
     ``eps(dtype, 0.25)`` (2.5 rounding units) of the maximum, relative to it, count as tied. The two
     ends of the breathing egg are its bounding radius, one float32 unit apart: with the whole
     derivative on the larger (the former rule, first of exact ties) the radius's derivative along a
-    smooth motion was 4 % from central differences and the whole frame's 1.2 %; with the average
-    0.1 % and 0.6 % (BENCHMARKS.md, "The placed centre's derivative at ties"). A forward pass costs
-    what ``jnp.max`` costs.
+    smooth motion was 4.4 % from central differences and the whole frame's 1.0 % (from the slope of a
+    cubic through seventeen differenced values); with the average 0.1 % and 0.4 % (BENCHMARKS.md,
+    "Near-ties split equally"). A forward pass costs what ``jnp.max`` costs.
     """
     return _select_max(jnp.asarray(x), axis)
 
