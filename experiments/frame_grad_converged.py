@@ -26,14 +26,13 @@ import datetime
 import json
 import pathlib
 import time
-import tomllib
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from frame_grad_fd import _scene  # the script's folder is on sys.path
 
-from jshadow.config import build_scene, config_from_dict
 from jshadow.entities import frame_time
 from jshadow.scene import render_at
 
@@ -44,12 +43,7 @@ SETTINGS = ("image", "scanline")
 
 def vertex_gradient(path: str, gradient: str, directions: int | None) -> tuple[np.ndarray, int, float]:
     """(V, 3) gradient of the weighted frame sum, the direction resolution used, and seconds taken."""
-    d = tomllib.loads((ROOT / path).read_text())
-    m = d.setdefault("method", {})
-    m["bsv_gradient"] = gradient
-    if directions is not None:
-        m["directions"] = [directions, directions]
-    scene = build_scene(config_from_dict(d, source=path, root=(ROOT / path).parent))
+    scene = _scene(path, gradient, directions)
     occ = scene.occluders[0]
     t = frame_time(scene.n_frames // 2, scene.n_frames)
     n_rec = scene.receivers.points.shape[0]
