@@ -17,6 +17,12 @@ same receivers:
   visibility of ``[method] bsv_gradient`` (``--bsv-gradient raycast image scanline`` times each and
   reports the relative difference and cosine between their gradients).
 
+``--ab-plane-first`` instead times, per config and setting, the forward and value_and_grad with the
+field evaluated on the plane and on the own vertices as two calls (``render_at``'s
+``plane_first=True``) against one call over all receivers, in one process, calls alternating (the
+VM's speed drifts too much between runs for separate runs to compare), and checks that the two
+gradients agree.
+
 Compile time (first call minus warm median) is reported separately; warm figures are medians of
 ``--runs`` calls with ``block_until_ready``. "backward / forward" is (value_and_grad − forward) /
 forward. float32, CPU unless JAX picks another device.
@@ -120,6 +126,57 @@ def bench(path: str, runs: int, bsv_gradient: str = "raycast") -> dict:
     return row
 
 
+def ab_plane_first(path: str, runs: int, bsv_gradient: str) -> dict:
+    """Forward and value_and_grad with ``occluder_visibilities(..., plane_first=True)`` (the default
+    of ``render_at``) against ``False``, alternating calls in this process (module docstring)."""
+    import jshadow.scene as sc
+
+    d = tomllib.loads((ROOT / path).read_text())
+    d.setdefault("method", {})["bsv_gradient"] = bsv_gradient
+    scene = build_scene(config_from_dict(d, source=path, root=(ROOT / path).parent))
+    t = frame_time(scene.n_frames // 2, scene.n_frames)
+    delta = jnp.zeros_like(scene.occluders[0].unit_vertices)
+    original = sc.occluder_visibilities
+    calls = {}
+    try:
+        for split in (True, False):
+            sc.occluder_visibilities = lambda *a, _s=split, **k: original(*a, **{**k, "plane_first": _s})
+            loss = frame_loss(scene, t)
+            loss(delta)  # concrete rest pose first: the BSV's slot sizes
+            calls[split] = (jax.jit(loss), jax.jit(jax.value_and_grad(loss)))
+            for f in calls[split]:
+                jax.block_until_ready(f(delta))  # compiled now, while the patch is in place
+    finally:
+        sc.occluder_visibilities = original
+    grads = {k: np.asarray(v[1](delta)[1]) for k, v in calls.items()}
+    times = {(k, i): [] for k in calls for i in (0, 1)}
+    for _ in range(runs):
+        for k, fns in calls.items():
+            for i, f in enumerate(fns):
+                t0 = time.perf_counter()
+                jax.block_until_ready(f(delta))
+                times[(k, i)].append(1e3 * (time.perf_counter() - t0))
+    med = {k: float(np.median(v)) for k, v in times.items()}
+    row = {
+        "config": path,
+        "bsv_gradient": bsv_gradient,
+        "forward_ms": {"plane_first": med[(True, 0)], "one_call": med[(False, 0)]},
+        "value_and_grad_ms": {"plane_first": med[(True, 1)], "one_call": med[(False, 1)]},
+        "value_and_grad_ratio": med[(True, 1)] / med[(False, 1)],
+        "gradient_relative_difference": float(
+            np.linalg.norm(grads[True] - grads[False]) / np.linalg.norm(grads[False])
+        ),
+    }
+    print(
+        f"{path:32s} {bsv_gradient:8s} forward {med[(True, 0)]:6.1f} / {med[(False, 0)]:6.1f} ms"
+        f"  value_and_grad {med[(True, 1)]:7.1f} / {med[(False, 1)]:7.1f} ms (plane first / one call,"
+        f" ratio {row['value_and_grad_ratio']:.3f})"
+        f"  gradients differ by {row['gradient_relative_difference']:.1e}",
+        flush=True,
+    )
+    return row
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--configs", nargs="*", default=DEFAULT)
@@ -132,8 +189,21 @@ def main(argv=None) -> int:
         choices=["raycast", "image", "scanline"],
         help="[method] bsv_gradient settings to time (same run; 'auto' is 'image' for these configs)",
     )
+    ap.add_argument("--ab-plane-first", action="store_true", help="time plane_first=True against False")
     args = ap.parse_args(argv)
     load = os.getloadavg()[0]
+    if args.ab_plane_first:
+        rows = [ab_plane_first(c, args.runs, g) for c in args.configs for g in args.bsv_gradient]
+        meta = {
+            "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+            "runs": args.runs,
+            "load_average_1min": [load, os.getloadavg()[0]],
+            "machine_probe": machine_probe(),
+        }
+        if args.json:
+            args.json.parent.mkdir(parents=True, exist_ok=True)
+            args.json.write_text(json.dumps({"meta": meta, "rows": rows}, indent=2))
+        return 0
     rows = [bench(c, args.runs, g) for c in args.configs for g in args.bsv_gradient]
     # each gradient against the ray-cast one (and "scanline" against "image"), same loss and pose
     pairs = [("image", "raycast"), ("scanline", "raycast"), ("scanline", "image")]

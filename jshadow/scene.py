@@ -793,11 +793,20 @@ def occluder_visibilities(
     bsvs: tuple[BSV | None, ...],
     points: Float[Array, "N 3"],
     own: tuple[Float[Array, "N n2"], Array] | None = None,
+    plane_first: bool = False,
 ) -> tuple[list, list]:
     """Visibility SH (N, n²) and distance (N,) from each receiver to each occluder's centre.
 
     BSV occluders whose coefficient arrays have the same shape are evaluated together under one
     ``lax.map`` (one compiled computation however many occluders there are).
+
+    ``plane_first``: ``points`` are :func:`jshadow.entities.receivers_at_time`'s, the plane's
+    receivers (``scene.receivers.points``) first. When own vertices follow them, the BSV fields of
+    the plane (read from ``scene.receivers.points`` itself) and of the vertices are evaluated as two
+    calls (same values): the plane's points do not move, and neither does a placed BSV centre, so
+    reverse mode finds no derivative for the plane's interpolation cells and frame rotations and
+    skips their transposes (in one call, or sliced from ``points``, every receiver carries the moving
+    vertices' derivative). The animated bunny's frame value_and_grad: BENCHMARKS.md, "BSV gradients".
 
     ``own``: None, or ``(rows, owners)`` — (N, n²) and (N,) int — from :func:`own_rows_at_time`
     (or a piece of them, sliced like ``points``): receiver r's visibility of occluder
@@ -814,14 +823,24 @@ def occluder_visibilities(
             dist[i] = safe_norm(points - occ.center)
         else:
             groups.setdefault(b.coeffs.shape, []).append(i)
+    fixed = scene.receivers.points.shape[0] if plane_first else 0
+    if 0 < fixed < points.shape[0]:
+        pieces = [jnp.asarray(scene.receivers.points, points.dtype), points[fixed:]]
+    else:
+        pieces = [points]
+
+    def field(b):
+        out = [bsv_visibility_and_distance(b, table, p, n) for p in pieces]
+        return tuple(jnp.concatenate(x, 0) if len(x) > 1 else x[0] for x in zip(*out))
+
     for idx in groups.values():
         if len(idx) == 1:
-            vis[idx[0]], dist[idx[0]] = bsv_visibility_and_distance(bsvs[idx[0]], table, points, n)
+            vis[idx[0]], dist[idx[0]] = field(bsvs[idx[0]])
             continue
         stacked = jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *[bsvs[i] for i in idx])
         # lax.map, not vmap: batching the field's gathers and small matmuls over occluders was slower
         # on XLA:CPU than one occluder after another (bench_render.py, 16 occluders: field 88 -> 65 ms)
-        vs, ds = jax.lax.map(lambda b: bsv_visibility_and_distance(b, table, points, n), stacked)
+        vs, ds = jax.lax.map(field, stacked)
         for j, i in enumerate(idx):
             vis[i], dist[i] = vs[j], ds[j]
     if own is not None:
@@ -1178,7 +1197,7 @@ def render_at(scene: Scene, t, bsvs: tuple[BSV | None, ...] | None = None, spher
     if bsvs is None:
         bsvs = scene_bsvs(scene, t, sphere_path)
     points, normals = receivers_at_time(scene, t)
-    vis, dist = occluder_visibilities(scene, bsvs, points, own)
+    vis, dist = occluder_visibilities(scene, bsvs, points, own, plane_first=True)
     shared = shared_normal_count(scene.receivers.normals)  # the plane's receivers lead `points`
     images = scene_images(scene, t)
     lighting = scene_lighting(scene)

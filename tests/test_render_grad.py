@@ -1,6 +1,7 @@
 """Gradients of full renders with respect to deformation parameters and light positions."""
 
 import dataclasses
+import re
 
 import equinox as eqx
 import jax
@@ -340,3 +341,49 @@ def test_sizes_of_a_more_deformed_concrete_pose_are_merged_into_the_traced_ones(
     assert sizes_a != sizes_b  # the two shapes need different sizes
     seen = _with_traced_rest_pose(a, lambda o: _image_grad_slots(o, f_np, method, lazy=True))
     assert seen == tuple(max(x, y) for x, y in zip(sizes_a, sizes_b, strict=True))
+
+
+def test_plane_and_own_vertices_evaluated_apart_give_the_same_field_and_gradient(monkeypatch):
+    # render_at evaluates the field on the plane (constant points, placed centre: no derivative for
+    # their cells) and on the occluder's own vertices as two calls; the values and the gradient
+    # must be those of one call over all receivers, and the plane's interpolation weights and frame
+    # angles must drop out of the backward pass: fewer reductions over the plane's 49 receivers
+    # than over the 42 moving vertices, whose cells do carry a derivative
+    import jshadow.scene as sc
+    from jshadow.visibility import bsv_sphere
+
+    method = Method(bsv_grid=(8, 12), directions=(16, 16))
+    base = scene_with(Scale(jnp.float32(0.1)))
+    scene = Scene(method, base.receivers, base.occluders, base.lights, base.environment, self_shadow=True)
+    occ = scene.occluders[0]
+    assert occ.unit_vertices.shape[0] == 42 and scene.receivers.points.shape[0] == 49
+    m = scene.method  # any BSV of the right shape will do: the sphere's (no mesh sampling to compile)
+    bsv = bsv_sphere(occ.center, occ.radius, n=m.field_bands, grid=m.bsv_grid, shell=m.shell)
+    weights = jnp.asarray(np.random.default_rng(0).uniform(0.5, 1.5, (91, 16)), jnp.float32)
+
+    def loss(a, plane_first):
+        # the BSV and the own vertices move with a, the plane does not (nor the placed centre)
+        b = eqx.tree_at(
+            lambda b: (b.coeffs, b.shell_radius), bsv, (bsv.coeffs * (1 + a), bsv.shell_radius * (1 + a))
+        )
+        points = jnp.concatenate([scene.receivers.points, occ.vertices(0.0) * (1 + a)])
+        (vis,), (dist,) = sc.occluder_visibilities(scene, (b,), points, plane_first=plane_first)
+        return jnp.sum(weights * vis) + jnp.sum(dist)
+
+    def reductions(plane_first, size):
+        text = str(jax.make_jaxpr(jax.grad(loss), static_argnums=1)(a0, plane_first))
+        return len(re.findall(rf"f32\[{size}\] = reduce_sum", text))
+
+    a0 = jnp.float32(0.05)
+    split, one = (jax.jit(jax.value_and_grad(loss), static_argnums=1)(a0, p) for p in (True, False))
+    np.testing.assert_allclose(float(split[0]), float(one[0]), rtol=1e-6)
+    np.testing.assert_allclose(float(split[1]), float(one[1]), rtol=1e-5)
+    assert abs(float(one[1])) > 1e-3
+    assert reductions(False, 49) == 0  # one call: no plane-sized arrays at all
+    assert reductions(True, 49) < reductions(True, 42)  # (none of 42 values without the split)
+    # and render_at asks for it
+    seen = []
+    original = sc.occluder_visibilities
+    monkeypatch.setattr(sc, "occluder_visibilities", lambda *a, **k: seen.append(k) or original(*a, **k))
+    jax.eval_shape(lambda: sc.render_at(scene, 0.0))
+    assert seen == [{"plane_first": True}]
