@@ -16,7 +16,7 @@ Usage (repository root, project environment active)::
 
     python experiments/frame_grad_converged.py [--configs configs/egg_breathing.toml ...] [--fine 128]
 
-Writes ``experiments/results/frame_grad_converged.json`` and prints a table.
+Writes ``experiments/results/frame_grad_converged.json`` (or ``--json``) and prints a table.
 """
 
 from __future__ import annotations
@@ -89,6 +89,9 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--configs", nargs="*", default=DEFAULT)
     ap.add_argument("--fine", type=int, default=128, help="directions per BSV point of the reference")
+    ap.add_argument(
+        "--json", type=pathlib.Path, default=ROOT / "experiments" / "results" / "frame_grad_converged.json"
+    )
     args = ap.parse_args(argv)
     rows = []
     for c in args.configs:
@@ -99,7 +102,7 @@ def main(argv=None) -> int:
                 f"  cosine {v['cosine']:.4f}  norm ratio {v['norm_ratio']:.3f}",
                 flush=True,
             )
-    out = ROOT / "experiments" / "results" / "frame_grad_converged.json"
+    out = args.json
     meta = {
         "date": datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC"),
         "device": str(jax.devices()[0]),
