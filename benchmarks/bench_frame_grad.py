@@ -77,10 +77,15 @@ def frame_loss(scene, t):
     return loss
 
 
-def bench(path: str, runs: int, bsv_gradient: str = "raycast") -> dict:
+def _scene(path: str, bsv_gradient: str):
+    """The config's scene with ``[method] bsv_gradient`` set."""
     d = tomllib.loads((ROOT / path).read_text())
     d.setdefault("method", {})["bsv_gradient"] = bsv_gradient
-    scene = build_scene(config_from_dict(d, source=path, root=(ROOT / path).parent))
+    return build_scene(config_from_dict(d, source=path, root=(ROOT / path).parent))
+
+
+def bench(path: str, runs: int, bsv_gradient: str = "raycast") -> dict:
+    scene = _scene(path, bsv_gradient)
     occ = scene.occluders[0]
     if not isinstance(occ, MeshOccluder):
         raise SystemExit(f"{path}: the first occluder is not a mesh")
@@ -131,9 +136,7 @@ def ab_plane_first(path: str, runs: int, bsv_gradient: str) -> dict:
     of ``render_at``) against ``False``, alternating calls in this process (module docstring)."""
     import jshadow.scene as sc
 
-    d = tomllib.loads((ROOT / path).read_text())
-    d.setdefault("method", {})["bsv_gradient"] = bsv_gradient
-    scene = build_scene(config_from_dict(d, source=path, root=(ROOT / path).parent))
+    scene = _scene(path, bsv_gradient)
     t = frame_time(scene.n_frames // 2, scene.n_frames)
     delta = jnp.zeros_like(scene.occluders[0].unit_vertices)
     original = sc.occluder_visibilities
@@ -177,6 +180,26 @@ def ab_plane_first(path: str, runs: int, bsv_gradient: str) -> dict:
     return row
 
 
+def _compare_gradients(configs, rows) -> None:
+    """Each timed gradient against the ray-cast one (and "scanline" against "image"), same loss and
+    pose: relative difference, cosine and norm ratio, printed and added to the rows."""
+    pairs = [("image", "raycast"), ("scanline", "raycast"), ("scanline", "image")]
+    for c in configs:
+        for mine, other in pairs:
+            if (c, mine) not in _GRADIENTS or (c, other) not in _GRADIENTS:
+                continue
+            a, b = _GRADIENTS[(c, mine)].ravel(), _GRADIENTS[(c, other)].ravel()
+            cmp = {
+                "relative_difference": float(np.linalg.norm(a - b) / np.linalg.norm(b)),
+                "cosine": float(a @ b / (np.linalg.norm(a) * np.linalg.norm(b))),
+                "norm_ratio": float(np.linalg.norm(a) / np.linalg.norm(b)),
+            }
+            for r in rows:
+                if r["config"] == c and r["bsv_gradient"] == mine:
+                    r[f"against_{other}"] = cmp
+            print(f"{c:32s} {mine} vs {other} gradient: " + "  ".join(f"{k} {v:.4f}" for k, v in cmp.items()))
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--configs", nargs="*", default=DEFAULT)
@@ -194,33 +217,9 @@ def main(argv=None) -> int:
     load = os.getloadavg()[0]
     if args.ab_plane_first:
         rows = [ab_plane_first(c, args.runs, g) for c in args.configs for g in args.bsv_gradient]
-        meta = {
-            "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
-            "runs": args.runs,
-            "load_average_1min": [load, os.getloadavg()[0]],
-            "machine_probe": machine_probe(),
-        }
-        if args.json:
-            args.json.parent.mkdir(parents=True, exist_ok=True)
-            args.json.write_text(json.dumps({"meta": meta, "rows": rows}, indent=2))
-        return 0
-    rows = [bench(c, args.runs, g) for c in args.configs for g in args.bsv_gradient]
-    # each gradient against the ray-cast one (and "scanline" against "image"), same loss and pose
-    pairs = [("image", "raycast"), ("scanline", "raycast"), ("scanline", "image")]
-    for c in args.configs:
-        for mine, other in pairs:
-            if (c, mine) not in _GRADIENTS or (c, other) not in _GRADIENTS:
-                continue
-            a, b = _GRADIENTS[(c, mine)].ravel(), _GRADIENTS[(c, other)].ravel()
-            cmp = {
-                "relative_difference": float(np.linalg.norm(a - b) / np.linalg.norm(b)),
-                "cosine": float(a @ b / (np.linalg.norm(a) * np.linalg.norm(b))),
-                "norm_ratio": float(np.linalg.norm(a) / np.linalg.norm(b)),
-            }
-            for r in rows:
-                if r["config"] == c and r["bsv_gradient"] == mine:
-                    r[f"against_{other}"] = cmp
-            print(f"{c:32s} {mine} vs {other} gradient: " + "  ".join(f"{k} {v:.4f}" for k, v in cmp.items()))
+    else:
+        rows = [bench(c, args.runs, g) for c in args.configs for g in args.bsv_gradient]
+        _compare_gradients(args.configs, rows)
     meta = {
         "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
         "machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores",

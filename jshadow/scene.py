@@ -824,6 +824,10 @@ def occluder_visibilities(
         else:
             groups.setdefault(b.coeffs.shape, []).append(i)
     fixed = scene.receivers.points.shape[0] if plane_first else 0
+    if fixed > points.shape[0]:
+        raise ValueError(
+            f"plane_first: points ({points.shape[0]}) must begin with the scene's {fixed} plane receivers"
+        )
     if 0 < fixed < points.shape[0]:
         pieces = [jnp.asarray(scene.receivers.points, points.dtype), points[fixed:]]
     else:

@@ -381,6 +381,8 @@ def test_plane_and_own_vertices_evaluated_apart_give_the_same_field_and_gradient
     assert abs(float(one[1])) > 1e-3
     assert reductions(False, 49) == 0  # one call: no plane-sized arrays at all
     assert reductions(True, 49) < reductions(True, 42)  # (none of 42 values without the split)
+    with pytest.raises(ValueError, match="plane_first"):  # points that cannot begin with the plane
+        sc.occluder_visibilities(scene, (bsv,), scene.receivers.points[:10], plane_first=True)
     # and render_at asks for it
     seen = []
     original = sc.occluder_visibilities
