@@ -301,6 +301,16 @@ def _check_grad_slots(grad_slots, nodes, directions, views):
     )
 
 
+def _rounded_grad_slots(grad_slots, cap, nodes, directions, views):
+    """``grad_slots`` checked, rounded up to whole words and capped (``cap``: every (edge, view)
+    pair): ``(pairs, nodes, pieces, window, (long, longer))`` as the derivative uses them."""
+    pairs, live, pieces, window, *longs = _check_grad_slots(grad_slots, nodes, directions, views)
+    pairs = min(_round_up(pairs, _WORD), cap)
+    every = pairs * nodes
+    longs = tuple(min(_round_up(x, _WORD), every) for x in longs)
+    return pairs, min(_round_up(live, _WORD), every), _round_up(pieces, _WORD), window, longs
+
+
 def _measured(measure):
     """``measure()`` evaluated eagerly (outside any trace), also inside a derivative rule being traced;
     it must close over concrete values only."""
@@ -721,11 +731,7 @@ def bsv_mesh_edgescan_diff(
         gs = _measured(grad_slots) if callable(grad_slots) else grad_slots
         if gs is None:  # a derivative always sees traced vertices: there is no pose to measure
             gs = _default_grad_slots(table, grid)
-        pairs, live, pieces, window, *longs = _check_grad_slots(gs, nodes, directions, views)
-        pairs = min(_round_up(pairs, _WORD), cap)
-        every = pairs * nodes
-        longs = tuple(min(_round_up(x, _WORD), every) for x in longs)
-        return pairs, min(_round_up(live, _WORD), every), _round_up(pieces, _WORD), window, longs
+        return _rounded_grad_slots(gs, cap, nodes, directions, views)
 
     # given sizes are checked now (bad ones are an error of this call, not of a later derivative)
     fixed = None if callable(grad_slots) else sizes()
