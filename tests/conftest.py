@@ -7,11 +7,15 @@
 * Warnings are errors (pyproject.toml).
 * XLA's persistent compilation cache is on, in a folder made for this test run and shared by its
   xdist workers (see ``_compilation_cache``).
+* ``JSHADOW_COMPILE_REPORT=FOLDER`` writes, per test, the seconds of tracing, lowering and XLA
+  compilation (``_CompileReport``; ``python scripts/compile_report.py FOLDER`` sums them up).
 """
 
+import json
 import os
 import shutil
 import tempfile
+import time
 
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
 
@@ -68,6 +72,55 @@ def subprocess_env(*, xla_flags: str = "") -> dict[str, str]:
             JAX_COMPILATION_CACHE_MAX_SIZE=str(jax.config.jax_compilation_cache_max_size),
         )
     return env
+
+
+class _CompileReport:
+    """Where a test's time goes: seconds of tracing, lowering and XLA compilation per test (from
+    :mod:`jax.monitoring`'s duration events), with its wall time, written as JSON per process when
+    ``JSHADOW_COMPILE_REPORT`` names a folder (``python scripts/compile_report.py FOLDER`` sums
+    them up). Compilation includes reads of the persistent cache; ``saved`` is the compile time
+    those reads saved. Off unless asked for."""
+
+    EVENTS = {
+        "/jax/core/compile/jaxpr_trace_duration": "trace",
+        "/jax/core/compile/jaxpr_to_mlir_module_duration": "lower",
+        "/jax/core/compile/backend_compile_duration": "compile",
+        "/jax/compilation_cache/compile_time_saved_sec": "saved",
+    }
+
+    def __init__(self, folder: str):
+        self.folder = folder
+        self.current = "(outside tests)"
+        self.rows: dict[str, dict[str, float]] = {}
+        jax.monitoring.register_event_duration_secs_listener(self._on_duration)
+
+    def _row(self, test):
+        return self.rows.setdefault(test, dict.fromkeys(("wall", *self.EVENTS.values()), 0.0))
+
+    def _on_duration(self, event, duration, **_):
+        if event in self.EVENTS:
+            self._row(self.current)[self.EVENTS[event]] += duration
+
+    @pytest.hookimpl(hookwrapper=True)
+    def pytest_runtest_protocol(self, item, nextitem):
+        self.current = item.nodeid
+        start = time.perf_counter()
+        yield
+        self._row(item.nodeid)["wall"] += time.perf_counter() - start
+        self.current = "(outside tests)"
+
+    def pytest_sessionfinish(self, session):
+        os.makedirs(self.folder, exist_ok=True)
+        name = os.environ.get("PYTEST_XDIST_WORKER", "main")
+        with open(os.path.join(self.folder, f"compile_{name}.json"), "w") as f:
+            json.dump(self.rows, f, indent=0)
+
+
+def pytest_configure(config):
+    folder = os.environ.get("JSHADOW_COMPILE_REPORT")
+    # xdist's controller runs no tests: only the processes that do (workers, or a lone pytest)
+    if folder and (os.environ.get("PYTEST_XDIST_WORKER") or not config.getoption("numprocesses", None)):
+        config.pluginmanager.register(_CompileReport(folder), "jshadow-compile-report")
 
 
 # Modules that hold the suite's slowest tests (25-75 s each in a full run, mostly compilation),
