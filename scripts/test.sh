@@ -21,4 +21,8 @@ if [ ! -x .venv/bin/python ]; then "$PY" -m venv .venv; fi
 # Every token of XLA_FLAGS must be a `--xla_...` flag: XLA silently stops reading at the first one
 # that is not.
 export XLA_FLAGS="${XLA_FLAGS:-} --xla_cpu_multi_thread_eigen=false --xla_backend_optimization_level=1 --xla_cpu_use_fusion_emitters=false"
-.venv/bin/python -m pytest -q -n "${PYTEST_WORKERS:-2}" "$@"
+# --dist worksteal: a worker that runs out of tests takes queued ones from the other. Under the
+# default load scheduling the first worker was sent the whole block of slow modules that conftest.py
+# puts first (xdist sends each worker a run of consecutive tests to start with), and the other one
+# stood idle for the last 8 of 41 minutes (2026-12-05, scripts/compile_report.py's per-worker JSON).
+.venv/bin/python -m pytest -q -n "${PYTEST_WORKERS:-2}" --dist worksteal "$@"

@@ -126,7 +126,8 @@ def pytest_configure(config):
 # Modules that hold the suite's slowest tests (25-75 s each in a full run, mostly compilation),
 # slowest first. They are run first so that the two xdist workers end together on short tests,
 # instead of one worker starting a minute-long test while the other has nothing left (in
-# alphabetical order, several of them came last).
+# alphabetical order, several of them came last). That needs scripts/test.sh's ``--dist
+# worksteal``: xdist starts each worker on a run of consecutive tests, so this block goes to one.
 _SLOW_FIRST = (
     "test_sharding",
     "test_codegen",
