@@ -33,6 +33,7 @@ import numpy as np
 from bench_render import machine_probe
 
 from jshadow.config import build_scene, load_config
+from jshadow.entities import MeshOccluder
 from jshadow.visibility import _edgescan as E
 from jshadow.visibility import _edgescan_grad as G
 from jshadow.visibility import _edgescan_scan as S
@@ -58,7 +59,7 @@ STAGES = (
 def programs(config: pathlib.Path, gradient: str = "scanline"):
     """The mesh at frame 0, the stage names and one jitted function per stage prefix."""
     scene = build_scene(load_config(config))
-    occ = next((o for o in scene.occluders if hasattr(o, "faces")), None)
+    occ = next((o for o in scene.occluders if isinstance(o, MeshOccluder)), None)
     if occ is None:
         raise SystemExit(f"{config} has no mesh occluder")
     x = jnp.asarray(occ.vertices(0.0))
@@ -79,12 +80,11 @@ def programs(config: pathlib.Path, gradient: str = "scanline"):
             return out, cr["y"], slot_all
         if level == 2:
             return out, cr["y"], sigma
-        stage = partial(E.staged, E.always(v))
-        cr, sigma, _ = stage(partial(S._compact_boundary, size=scan[4]), cr, sigma)
         if level == 3:
+            cr, sigma, _ = E.staged(E.always(v), partial(S._compact_boundary, size=scan[4]), cr, sigma)
             return out, cr["y"], sigma
-        term = partial(S._terms, grid=grid, directions=dirs, shell=shell, refine=4)
-        return out, stage(term, v, cr, sigma, slot_all, table)
+        # the whole primal is the derivative's own (refine: its default, which the renderer keeps)
+        return S._primal(v, faces, table, grid, dirs, shell, slots, scan, 4, n)[0]
 
     meta = _meta(x, faces, grid, dirs, shell, n, slots, scan_slots=list(scan))
     return x, STAGES, [jax.jit(partial(upto, level=k)) for k in range(len(STAGES))], meta

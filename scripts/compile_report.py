@@ -6,8 +6,9 @@
 Every test process writes ``compile_<worker>.json`` (``tests/conftest.py``, ``_CompileReport``):
 per test its wall time and the seconds of jax's tracing, lowering to StableHLO and XLA compilation
 (which includes reads of the persistent compilation cache; ``saved`` is what those reads saved).
-Trace time counts a jitted function traced inside another one in both, so it can exceed wall time;
-compile and lower do not nest. Time in child processes (tests that start Python) is wall time only.
+Tracing is what jax's trace events report (a jitted function traced inside another one recorded
+no event of its own in a check, so it counts once, within its caller). Time in child processes
+(tests that start Python) is wall time only.
 """
 
 from __future__ import annotations
@@ -64,7 +65,7 @@ def main(argv=None) -> None:
         f"{sum(t != OUTSIDE for t in rows)} tests; summed over the test processes: wall "
         f"{total['wall']:.0f} s, XLA compilation "
         f"{total['compile']:.0f} s ({total['compile'] / max(total['wall'], 1e-9):.0%}), lowering "
-        f"{total['lower']:.0f} s, tracing {total['trace']:.0f} s (nested traces counted twice); "
+        f"{total['lower']:.0f} s, tracing {total['trace']:.0f} s; "
         f"the persistent cache saved {total['saved']:.0f} s\n"
     )
     print("By file:\n" + table(rows, lambda t: t.split("::")[0], a.top) + "\n")
