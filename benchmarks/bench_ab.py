@@ -1,6 +1,6 @@
 """Shading time of the working tree against an earlier commit, in one process, calls alternating.
 
-    python benchmarks/bench_ab.py --base 0aecdf5 --calls 300 configs/airplane_bend.toml ...
+    python benchmarks/bench_ab.py --base 0aecdf5 --calls 300 configs/airplane_bend.toml ... spheres:16
 
 This VM's speed drifts by up to 2.5x between days and by +-40 % within minutes, so figures from
 different runs (or from two processes run one after the other) do not compare. Here the package at
@@ -40,12 +40,39 @@ def export_base(commit: str, folder: pathlib.Path) -> None:
     (folder / "jshadow").rename(folder / "jshadow_base")
 
 
+def many_spheres(pkg: str, k: int, n_plane: int = 160):
+    """``bench_render.many_spheres`` built from package ``pkg``: k sphere occluders (radius 0.25,
+    random positions, seed 0) over an n_plane² plane under a constant environment, paper method."""
+    ent = importlib.import_module(f"{pkg}.entities")
+    rng = np.random.default_rng(0)
+    occ = tuple(
+        ent.SphereOccluder(
+            jnp.asarray(
+                [*rng.uniform(-1.5, 1.5, 1), rng.uniform(0.6, 1.6), *rng.uniform(-1.5, 1.5, 1)], jnp.float32
+            ),
+            jnp.float32(0.25),
+        )
+        for _ in range(k)
+    )
+    xs = np.linspace(-2.0, 2.0, n_plane, dtype=np.float32)
+    x, z = np.meshgrid(xs, xs)
+    pts = np.stack([x.ravel(), np.zeros(x.size, np.float32), z.ravel()], -1)
+    nrm = np.tile(np.float32([0, 1, 0]), (x.size, 1))
+    rec = ent.Receivers(jnp.asarray(pts), jnp.asarray(nrm), jnp.full(3, 0.8, jnp.float32), (n_plane, n_plane))
+    return ent.Scene(ent.Method.paper(), rec, occ, (), ent.Environment(jnp.ones(3, jnp.float32)), n_frames=2)
+
+
 def shading_call(pkg: str, cfg: str):
-    """A zero-argument function running one frame's shading of ``cfg`` with package ``pkg``."""
+    """A zero-argument function running one frame's shading of ``cfg`` with package ``pkg``;
+    ``cfg = "spheres:K"`` is :func:`many_spheres` (the spheres through the BSV path)."""
     js = importlib.import_module(pkg)
     runner = importlib.import_module(f"{pkg}.runner")
-    scene = js.build_scene(js.load_config(cfg))
-    r = runner.Renderer(scene)
+    if cfg.startswith("spheres:"):
+        scene = many_spheres(pkg, int(cfg.split(":")[1]))
+        r = runner.Renderer(scene, sphere_path="bsv")
+    else:
+        scene = js.build_scene(js.load_config(cfg))
+        r = runner.Renderer(scene)
     r.frame(0)
     bsvs = jax.block_until_ready(r._bsvs(0.3))
     t = jnp.asarray(0.3, scene.receivers.points.dtype)
@@ -62,7 +89,7 @@ def shading_call(pkg: str, cfg: str):
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("configs", nargs="+")
+    ap.add_argument("configs", nargs="+", help="config files, or spheres:K (K sphere occluders, BSV path)")
     ap.add_argument("--base", required=True, help="the commit to compare the working tree with")
     ap.add_argument("--calls", type=int, default=300)
     args = ap.parse_args()

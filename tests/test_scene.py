@@ -221,9 +221,14 @@ def test_outputs_finite_with_receivers_on_and_inside_occluders():
     assert math.isfinite(float(out.irradiance.sum()))
 
 
-def test_grouped_bsv_occluders_equal_one_by_one():
-    # several BSV occluders of the same shape are evaluated under one vmap; it must equal the loop
+@pytest.mark.parametrize("unrolled", [16, 2])
+def test_grouped_bsv_occluders_equal_one_by_one(unrolled, monkeypatch):
+    # several BSV occluders of the same shape: traced one by one up to _UNROLLED_FIELDS, beyond it
+    # under one lax.map (unrolled=2 sends these three there); both must equal the field one by one
+    import jshadow.scene as sc
     from jshadow.scene import occluder_visibilities, scene_bsvs
+
+    monkeypatch.setattr(sc, "_UNROLLED_FIELDS", unrolled)
 
     occ = tuple(
         SphereOccluder(f32(x, 1.0 + 0.2 * x, -x), jnp.float32(0.3 + 0.1 * x)) for x in (-1.0, 0.0, 1.0)
@@ -239,7 +244,7 @@ def test_grouped_bsv_occluders_equal_one_by_one():
         np.testing.assert_allclose(
             d, np.linalg.norm(np.asarray(pts) - np.asarray(b.center), axis=-1), rtol=1e-6
         )
-    # a lone BSV occluder takes the other path (no lax.map); its distances come from the field too
+    # a lone BSV occluder; its distances come from the field too
     one = Scene(SMALL, plane(n=6), occ[:1], (), Environment(f32(1, 1, 1)))
     (v1,), (d1,) = occluder_visibilities(one, bsvs[:1], pts)
     np.testing.assert_allclose(v1, vis[0], rtol=1e-5, atol=1e-6)
