@@ -66,6 +66,8 @@ from .scene import (
     shared_normal_count,
     uses_light_images,
     uses_self_rays,
+    uses_visibility_chain,
+    visibility_chain,
 )
 
 __all__ = ["Renderer", "shape_is_static", "render_frames", "DEFAULT_CHUNK"]
@@ -101,15 +103,36 @@ def _fields(scene, bsvs, points, own=None):
 
 
 def _combine_piece(
-    scene, points, normals, vis, dist, lighting, analytic_spheres, shared_normal, images=None, own=None
+    scene,
+    points,
+    normals,
+    vis,
+    dist,
+    lighting,
+    analytic_spheres,
+    shared_normal,
+    images=None,
+    own=None,
+    env_visibility=None,
 ):
     """Combination of one piece (``images``: the occluders' occlusion images with
     ``light_visibility = "images"``, else None; ``own``: the piece's rows of the ray-cast
-    own-vertex visibility; see :func:`jshadow.scene.image_fractions`)."""
+    own-vertex visibility; see :func:`jshadow.scene.image_fractions`; ``env_visibility``: see
+    :func:`jshadow.scene.combine`)."""
     vis, dist = list(vis), list(dist)  # (m, ...) arrays or empty lists -> lists of m arrays
     fractions, env_fraction = image_fractions(scene, images, lighting, points, normals, own)
     e = combine(
-        scene, points, normals, vis, dist, lighting, analytic_spheres, shared_normal, fractions, env_fraction
+        scene,
+        points,
+        normals,
+        vis,
+        dist,
+        lighting,
+        analytic_spheres,
+        shared_normal,
+        fractions,
+        env_fraction,
+        env_visibility,
     )
     return e, e * (scene.receivers.albedo / math.pi)
 
@@ -122,7 +145,14 @@ def _shade_piece(
 ):
     """Field evaluation and combination of one piece of receivers, traced together (``own``: the
     piece's rows of the ray-cast own-vertex visibility, see :func:`jshadow.scene.occluder_visibilities`;
-    ``images``: see :func:`_combine_piece`)."""
+    ``images``: see :func:`_combine_piece`). Where only the product of the visibilities is needed
+    (:func:`jshadow.scene.uses_visibility_chain`), each is multiplied in as soon as it is made
+    (:func:`jshadow.scene.visibility_chain`)."""
+    if uses_visibility_chain(scene, own, images, lighting):
+        chain = visibility_chain(scene, bsvs, points)
+        return _combine_piece(
+            scene, points, normals, [], [], lighting, analytic_spheres, shared_normal, images, own, chain
+        )
     vis, dist = occluder_visibilities(scene, bsvs, points, own)
     return _combine_piece(
         scene, points, normals, vis, dist, lighting, analytic_spheres, shared_normal, images, own

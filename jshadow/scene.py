@@ -76,6 +76,7 @@ from .visibility import (
     ray_sphere_any_hit,
     vertex_visibility_sh,
 )
+from .visibility._edgescan import always, staged
 
 __all__ = [
     "RenderResult",
@@ -84,6 +85,8 @@ __all__ = [
     "occluder_bsv",
     "mesh_bsv",
     "occluder_visibilities",
+    "uses_visibility_chain",
+    "visibility_chain",
     "uses_self_rays",
     "self_visibility_owners",
     "occluder_own_visibility",
@@ -867,22 +870,79 @@ def occluder_visibilities(
 def _product(vs: list) -> Float[Array, "N n2"] | None:
     """SH product of several visibilities, truncated to n bands after every factor.
 
-    Computed with the coefficient axis first (:func:`jshadow.sh.sh_product_t`; one transpose in and
-    out for the whole chain). Up to three factors are multiplied inline; more go through
-    ``lax.scan`` so that the (unrolled, sparse) triple product is compiled once, not per occluder.
+    Computed with the coefficient axis first (:func:`jshadow.sh.sh_product_t`). Each product is a
+    stage (:func:`jshadow.visibility._edgescan.staged`): its operands are buffers. Without that,
+    XLA:CPU fused the producers of a product (the fields' gathers and rotations) into it and
+    recomputed them for every term: one occluder's product with another took 7.2 ms where the
+    staged one takes 3.0 (BENCHMARKS.md, "Many occluders"). Up to ``_UNROLLED_FIELDS`` factors
+    are multiplied one after another (no stacked copy of all of them); more go through one
+    ``lax.scan`` (compiled once, however many there are).
     """
     if not vs:
         return None
     if len(vs) == 1:
         return vs[0]
-    if len(vs) <= 3:
-        acc = vs[0].T
-        for v in vs[1:]:
-            acc = sh.sh_product_t(acc, v.T)
-        return acc.T
-    rest = jnp.swapaxes(jnp.stack(vs[1:]), 1, 2)  # (m − 1, n², N)
-    acc, _ = jax.lax.scan(lambda a, v: (sh.sh_product_t(a, v), None), vs[0].T, rest)
+    live = always(vs[0])
+    if len(vs) > _UNROLLED_FIELDS:
+
+        def chain(first, rest):
+            return jax.lax.scan(lambda a, v: (sh.sh_product_t(a, v), None), first.T, rest)[0].T
+
+        return staged(live, chain, vs[0], jnp.swapaxes(jnp.stack(vs[1:]), 1, 2))
+    acc = vs[0].T
+    for v in vs[1:]:
+        acc = staged(live, sh.sh_product_t, acc, v.T)
     return acc.T
+
+
+def uses_visibility_chain(scene: Scene, own=None, images=None, lighting: Lighting | None = None) -> bool:
+    """Whether :func:`visibility_chain` can stand for :func:`occluder_visibilities` in a frame's
+    combination: an environment, no sphere lights, no own-vertex rows, occlusion images or
+    environment lights (only the product of all visibilities is needed then), and 2 to
+    ``_UNROLLED_FIELDS`` occluders."""
+    env_lights = None if lighting is None else lighting.env_lights
+    return (
+        scene.environment is not None
+        and not scene.lights
+        and own is None
+        and images is None
+        and env_lights is None
+        and 2 <= len(scene.occluders) <= _UNROLLED_FIELDS
+    )
+
+
+def visibility_chain(
+    scene: Scene, bsvs: tuple[BSV | None, ...], points: Float[Array, "N 3"]
+) -> tuple[Float[Array, "N n2"], Float[Array, "N n2"]]:
+    """``(rest, last)``: the product of all but the last occluder's visibility (as :func:`_product`)
+    and the last one's, each visibility made just before it is multiplied in (one stage per
+    occluder: field and product). :func:`combine` takes them as ``env_visibility``
+    (:func:`uses_visibility_chain` says when). The numbers are those of :func:`occluder_visibilities`
+    and :func:`_product`; only the order differs: made all at once, 16 occluders' visibilities over
+    25600 receivers (26 MB) left the caches, and the fields took 2.1 instead of 1.2 ms each
+    (BENCHMARKS.md, "Many occluders")."""
+    n = scene.method.sh_bands
+    table = occlusion_table(scene) if any(b is not None for b in bsvs) else None
+
+    def visibility(occ, b, p):
+        if b is None:
+            return sphere_visibility_sh(occ.center, occ.radius, p, n)
+        return bsv_visibility_and_distance(b, table, p, n)[0]
+
+    def field(acc, occ, b, p):
+        # acc passes through (the other branch of the stage gives zeros, so XLA cannot forward
+        # it): the field waits for the product before it, and its result is a buffer, not fused
+        # into the product and recomputed per term
+        return visibility(occ, b, p), acc
+
+    live = always(points)
+    occs = scene.occluders
+    acc = staged(live, visibility, occs[0], bsvs[0], points).T
+    for occ, b in zip(occs[1:-1], bsvs[1:-1], strict=True):
+        v, acc = staged(live, field, acc, occ, b, points)
+        acc = staged(live, sh.sh_product_t, acc, v.T)
+    v, acc = staged(live, field, acc, occs[-1], bsvs[-1], points)
+    return acc.T, v
 
 
 class Lighting(eqx.Module):
@@ -1008,6 +1068,7 @@ def combine(
     shared_normal: int = 0,
     light_fractions: list | None = None,
     env_fraction: tuple[Float[Array, "N 3"], Bool[Array, " N"]] | None = None,
+    env_visibility: tuple[Float[Array, "N n2"], Float[Array, "N n2"]] | None = None,
 ) -> Float[Array, "N 3"]:
     """Irradiance (N, 3) from the occluders' visibilities and the scene's lights.
 
@@ -1046,6 +1107,11 @@ def combine(
     fraction of ``env_fraction`` = ``(F, inside)`` from :func:`environment_visible_fraction`
     (required then); at ``inside`` receivers the bright part takes the environment's n-band path
     (with ``lighting.env_bright_sh``) instead.
+
+    ``env_visibility``: ``(rest, last)`` of :func:`visibility_chain`, in place of ``vis`` (then
+    empty; the scene must pass :func:`uses_visibility_chain`). With several occluders the
+    environment's term needs only ``⟨V₁ ⊛ … ⊛ V_m, w_c⟩ = restᵀ P(w_c) last`` (P(w) "multiply by
+    w", symmetric): one GEMM for the shared-normal rows instead of the last triple product.
     """
     n = scene.method.sh_bands
     ratio = scene.method.shading == "ratio"
@@ -1076,7 +1142,20 @@ def combine(
     exact_blockers = [
         ratio and analytic_spheres and isinstance(occ, SphereOccluder) for occ in scene.occluders
     ]
-    v_all = _product(vis) if scene.environment is not None else None
+    # the environment needs only ⟨V₁ ⊛ … ⊛ V_m, w_c⟩: with several occluders the last product is a
+    # bilinear form, ⟨a ⊛ b, w⟩ = aᵀ P(w) b (P(w) "multiply by w", symmetric), one GEMM for the
+    # shared-normal rows instead of a triple product (the bright part of a split map reuses the
+    # full product, so not with environment lights)
+    split_last = len(vis) >= 2 and lighting.env_lights is None
+    v_all = None
+    if env_visibility is not None:
+        if vis or not uses_visibility_chain(scene, lighting=lighting):
+            raise ValueError(
+                "combine: env_visibility stands for vis (pass vis=[]) in scenes of uses_visibility_chain"
+            )
+        v_all = tuple(env_visibility)
+    elif scene.environment is not None:
+        v_all = (_product(vis[:-1]), vis[-1]) if split_last else _product(vis)
 
     def env_term(l_env, env_map):
         """The environment's n-band term (N, 3) for SH radiance ``l_env`` (n², 3) whose exact
@@ -1092,6 +1171,17 @@ def combine(
         if v_all is None:
             return _stack_groups(groups, exact if ratio else unoccluded)
         m_env = sh.product_matrix(l_env.T)  # (3, n², n²): "multiply by L_env", per channel
+        if isinstance(v_all, tuple):
+            rest, last = v_all
+            parts = []
+            for k, ((a, b, _), t) in enumerate(zip(groups, transfers, strict=True)):
+                if t.shape[0] == 1:  # Σ_ij rest_i P(w_c)_ij last_j with w_c = M_env[c] T₀
+                    w = jnp.einsum("cik,k->ci", m_env, t[0])
+                    part = _env_rows(rest, sh.product_matrix(w), last)[a:b]
+                else:
+                    part = _env_rows(sh.sh_product(rest[a:b], last[a:b]), m_env, t)
+                parts.append(finish(part, k))
+            return jnp.concatenate(parts, 0) if len(parts) > 1 else parts[0]
         # Σ_ik V_i M_env[c, i, k] T_k = V · w_c with the shading vector w_c = M_env[c] T
         return by_group(
             v_all,
