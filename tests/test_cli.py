@@ -65,6 +65,21 @@ def test_render_and_reference_write_the_contract_files(tmp_path, scene_file):
     assert main(["compare", str(tmp_path / "r"), str(tmp_path / "q"), "--out", str(tmp_path / "d.png")]) == 0
 
 
+def test_one_frame_render_times_a_frame_not_the_readout_preparation(tmp_path, scene_file):
+    # the sphere through the BSV path could be read out of the field's table from the second call
+    # on; the warm re-run of a one-frame render would then time the readout's preparation (1.6 s
+    # for the studio bunny, against a 1.1 ms frame), so a one-frame render does not prepare it.
+    # An animation of the same static scene prepares it at its first frame and reads out every frame.
+    assert main(["render", str(scene_file), "--out", str(tmp_path / "one"), "--sphere-path", "bsv"]) == 0
+    t = json.loads((tmp_path / "one" / "timings.json").read_text())
+    assert t["readout_frames"] == 0 and "first_call" in t["per_frame"][0]
+    anim = tmp_path / "anim.toml"
+    anim.write_text(scene_file.read_text() + "\n[animation]\nframes = 3\n")
+    assert main(["render", str(anim), "--out", str(tmp_path / "anim"), "--sphere-path", "bsv"]) == 0
+    t = json.loads((tmp_path / "anim" / "timings.json").read_text())
+    assert t["frames"] == 3 and t["readout_frames"] == 3
+
+
 def test_misspelt_key_exits_2_with_one_line_and_no_output(tmp_path, scene_file):
     bad = tmp_path / "bad.toml"
     bad.write_text(SCENE.replace("resolution = [9, 7]", "resolution = [9, 7]\nresolutoin = [1, 1]"))
