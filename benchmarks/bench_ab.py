@@ -40,9 +40,10 @@ def export_base(commit: str, folder: pathlib.Path) -> None:
     (folder / "jshadow").rename(folder / "jshadow_base")
 
 
-def many_spheres(pkg: str, k: int, n_plane: int = 160):
+def many_spheres(pkg: str, k: int, n_plane: int = 160, far: int = 0):
     """``bench_render.many_spheres`` built from package ``pkg``: k sphere occluders (radius 0.25,
-    random positions, seed 0) over an n_plane² plane under a constant environment, paper method."""
+    random positions, seed 0) over an n_plane² plane under a constant environment, paper method;
+    the last ``far`` of them lifted 50 units up, beyond every receiver's range."""
     ent = importlib.import_module(f"{pkg}.entities")
     rng = np.random.default_rng(0)
     occ = tuple(
@@ -54,6 +55,10 @@ def many_spheres(pkg: str, k: int, n_plane: int = 160):
         )
         for _ in range(k)
     )
+    lift = jnp.asarray([0.0, 50.0, 0.0], jnp.float32)
+    occ = tuple(
+        o if i < k - far else ent.SphereOccluder(o.center + lift, o.radius) for i, o in enumerate(occ)
+    )
     xs = np.linspace(-2.0, 2.0, n_plane, dtype=np.float32)
     x, z = np.meshgrid(xs, xs)
     pts = np.stack([x.ravel(), np.zeros(x.size, np.float32), z.ravel()], -1)
@@ -64,11 +69,13 @@ def many_spheres(pkg: str, k: int, n_plane: int = 160):
 
 def shading_call(pkg: str, cfg: str):
     """A zero-argument function running one frame's shading of ``cfg`` with package ``pkg``;
-    ``cfg = "spheres:K"`` is :func:`many_spheres` (the spheres through the BSV path)."""
+    ``cfg = "spheres:K"`` is :func:`many_spheres` (the spheres through the BSV path), ``"spheres:K:F"``
+    the same with the last F of them beyond every receiver's range."""
     js = importlib.import_module(pkg)
     runner = importlib.import_module(f"{pkg}.runner")
     if cfg.startswith("spheres:"):
-        scene = many_spheres(pkg, int(cfg.split(":")[1]))
+        k, far = (int(x) for x in (cfg.split(":")[1:] + ["0"])[:2])
+        scene = many_spheres(pkg, k, far=far)
         r = runner.Renderer(scene, sphere_path="bsv")
     else:
         scene = js.build_scene(js.load_config(cfg))
@@ -89,7 +96,11 @@ def shading_call(pkg: str, cfg: str):
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("configs", nargs="+", help="config files, or spheres:K (K sphere occluders, BSV path)")
+    ap.add_argument(
+        "configs",
+        nargs="+",
+        help="config files, or spheres:K[:F] (K sphere occluders, BSV path, F of them far away)",
+    )
     ap.add_argument("--base", required=True, help="the commit to compare the working tree with")
     ap.add_argument("--calls", type=int, default=300)
     args = ap.parse_args()

@@ -13,7 +13,11 @@ Products of SH functions are SH triple products truncated to n bands; the final 
 ``∫ V · (L·T)`` is a double product of V with the n-band projection of L·T, which is exact for an
 n-band V (so one occluder under the environment costs one product L·T per receiver and one dot).
 What a scene does not need is skipped at trace time: no environment, no lights, no occluders,
-a single occluder (no visibility products).
+a single occluder (no visibility products); and at run time a BSV occluder that no receiver is
+within range of (visibility 1 everywhere: its field, and in the renderer's chain its product, are
+not evaluated; :func:`_reaches`). Receivers out of range of an occluder that reaches others get
+visibility 1 from the field's range test; skipping them one by one cost more than it saved on
+XLA:CPU (BENCHMARKS.md, "Many occluders").
 
 Sphere lights do not occlude (they are emitters only), matching :mod:`jshadow.reference`.
 """
@@ -31,7 +35,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from . import sh
-from ._numerics import safe_norm, safe_normalize
+from ._numerics import safe_norm, safe_normalize, safe_sqrt
 from .entities import (
     MeshOccluder,
     Scene,
@@ -843,7 +847,7 @@ def occluder_visibilities(
         pieces = [points]
 
     def field(b):
-        out = [bsv_visibility_and_distance(b, table, p, n) for p in pieces]
+        out = [_field_or_unit(b, table, p, n) for p in pieces]
         return tuple(jnp.concatenate(x, 0) if len(x) > 1 else x[0] for x in zip(*out))
 
     for idx in groups.values():
@@ -865,6 +869,31 @@ def occluder_visibilities(
             if isinstance(occ, MeshOccluder):
                 vis[i] = jnp.where((owners == i)[:, None], rows.astype(vis[i].dtype), vis[i])
     return vis, dist
+
+
+def _reaches(b: BSV, table: MkTable, points: Float[Array, "N 3"]) -> Bool[Array, ""]:
+    """Whether any receiver is within a BSV occluder's range (the table's largest distance: the
+    field's ``mk_in_range``, here generous by a relative 1e-4); where none is, its visibility is 1
+    at every receiver and its field is not evaluated (a ``lax.cond``: a far occluder costs one pass
+    over the receivers' distances)."""
+    rel = points - b.center
+    d2 = rel[:, 0] * rel[:, 0] + rel[:, 1] * rel[:, 1] + rel[:, 2] * rel[:, 2]
+    reach = b.shell_radius * (1.0 + 1e-4) / table.ks[0].astype(d2.dtype)
+    return jnp.any(d2 <= reach * reach)
+
+
+def _field_or_unit(b: BSV, table: MkTable, p: Float[Array, "N 3"], n: int) -> tuple[Array, Array]:
+    """:func:`bsv_visibility_and_distance`, or visibility 1 and the distances (computed as the field
+    computes them) where no receiver is within the occluder's range (:func:`_reaches`)."""
+
+    def far(b, p):
+        rel = p - b.center
+        x, y, z = rel[:, 0], rel[:, 1], rel[:, 2]
+        return unit_visibility((p.shape[0],), n, p.dtype), safe_sqrt(x * x + y * y + z * z)
+
+    return jax.lax.cond(
+        _reaches(b, table, p), lambda b, p: bsv_visibility_and_distance(b, table, p, n), far, b, p
+    )
 
 
 def _product(vs: list) -> Float[Array, "N n2"] | None:
@@ -935,13 +964,24 @@ def visibility_chain(
         # into the product and recomputed per term
         return visibility(occ, b, p), acc
 
+    def step(acc, occ, b, p):
+        v, acc = staged(live, field, acc, occ, b, p)
+        return staged(live, sh.sh_product_t, acc, v.T)
+
+    def unit(acc, occ, b, p):
+        return unit_visibility((p.shape[0],), n, p.dtype), acc
+
+    def skip(acc, occ, b, p):
+        return acc
+
+    # a BSV occluder with no receiver in range is skipped (visibility 1, no field, no product)
     live = always(points)
     occs = scene.occluders
-    acc = staged(live, visibility, occs[0], bsvs[0], points).T
-    for occ, b in zip(occs[1:-1], bsvs[1:-1], strict=True):
-        v, acc = staged(live, field, acc, occ, b, points)
-        acc = staged(live, sh.sh_product_t, acc, v.T)
-    v, acc = staged(live, field, acc, occs[-1], bsvs[-1], points)
+    reaches = [live if b is None else _reaches(b, table, points) for b in bsvs]
+    acc = jax.lax.cond(reaches[0], field, unit, None, occs[0], bsvs[0], points)[0].T
+    for occ, b, r in zip(occs[1:-1], bsvs[1:-1], reaches[1:-1], strict=True):
+        acc = jax.lax.cond(r, step, skip, acc, occ, b, points)
+    v, acc = jax.lax.cond(reaches[-1], field, unit, acc, occs[-1], bsvs[-1], points)
     return acc.T, v
 
 

@@ -10,6 +10,7 @@ import trimesh
 import jshadow.scene as sc
 from jshadow import sh
 from jshadow.entities import Environment, MeshOccluder, Method, Receivers, Scene, SphereLight, SphereOccluder
+from jshadow.field import unit_visibility
 from jshadow.geometry import normalize_to_unit_sphere
 from jshadow.runner import Renderer
 
@@ -145,3 +146,30 @@ def test_split_last_product_gradient_matches_finite_differences():
         fd = np.array([(loss(c0.at[i].add(h)) - loss(c0.at[i].add(-h))) / (2 * h) for i in range(3)])
         np.testing.assert_allclose(g, fd, rtol=1e-6, atol=1e-8 * np.abs(fd).max())
         assert np.abs(g).max() > 0
+
+
+@pytest.mark.parametrize("lit", [False, True])
+def test_a_far_bsv_occluder_is_skipped_and_changes_nothing(lit):
+    # a BSV occluder beyond the field's range of every receiver (8 shell radii): its visibility is
+    # 1 and its field is not evaluated (a lax.cond on _reaches); the frame equals the frame without
+    # it, through the fused chain (no light) and through the separate fields (a sphere light)
+    light = (SphereLight(_f(1.0, 3.0, 0.5), jnp.float32(0.5), _f(2.0, 2.0, 2.0)),) if lit else ()
+    base = _scene("ratio", lights=light)
+    far = SphereOccluder(_f(0.0, 40.0, 0.0), jnp.float32(0.3))
+    occ = base.occluders
+    with_far = Scene(base.method, base.receivers, (occ[0], far, occ[1], occ[2]), light, base.environment)
+    assert sc.uses_visibility_chain(with_far) == (not lit)
+    bsvs = sc.scene_bsvs(with_far, 0.0, "bsv")
+    table = sc.occlusion_table(with_far)
+    pts = with_far.receivers.points
+    assert not bool(sc._reaches(bsvs[1], table, pts))
+    assert all(bool(sc._reaches(b, table, pts)) for b in bsvs[::2])
+    got = Renderer(with_far, sphere_path="bsv", static_readout=False).frame(0)[0].irradiance
+    want = Renderer(base, sphere_path="bsv", static_readout=False).frame(0)[0].irradiance
+    np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-7 * float(np.abs(want).max()))
+    # the far occluder's visibility and distance from the general path: 1 and its true distance
+    vis, dist = sc.occluder_visibilities(with_far, bsvs, pts)
+    np.testing.assert_allclose(vis[1], unit_visibility((pts.shape[0],), 4, jnp.float32), atol=0)
+    np.testing.assert_allclose(
+        dist[1], np.linalg.norm(np.asarray(pts) - np.asarray(far.center), axis=-1), rtol=1e-6
+    )
