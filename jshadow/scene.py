@@ -1219,7 +1219,8 @@ def combine(
                     w = jnp.einsum("cik,k->ci", m_env, t[0])
                     part = _env_rows(rest, sh.product_matrix(w), last)[a:b]
                 else:
-                    part = _env_rows(sh.sh_product(rest[a:b], last[a:b]), m_env, t)
+                    prod = staged(always(t), sh.sh_product, rest[a:b], last[a:b])  # operands as buffers
+                    part = _env_rows(prod, m_env, t)
                 parts.append(finish(part, k))
             return jnp.concatenate(parts, 0) if len(parts) > 1 else parts[0]
         # Σ_ik V_i M_env[c, i, k] T_k = V · w_c with the shading vector w_c = M_env[c] T
