@@ -332,3 +332,24 @@ def test_node_compaction_keeps_the_gradient_and_overflow_raises():
     np.testing.assert_allclose(compact, every, rtol=1e-5, atol=1e-5 * np.abs(every).max())
     with pytest.raises(Exception, match="gradient slots overflowed"):
         grad((pairs, 32, pieces, window, long, longer))
+
+
+def test_small_divmod_is_exact_up_to_its_bound():
+    # the pixel lists split an entry's index in its box into row and column through a float32
+    # quotient; exact for 0 <= a < 2^20 (every box of up to 1024² pixels)
+    from jshadow.visibility._edgescan_grad import _small_divmod
+
+    b = np.repeat(np.arange(1, 65, dtype=np.int32), 64 * 64)
+    a = (np.arange(b.size, dtype=np.int32) % (64 * 64)) * b // 64  # a spread of a < 64·b for each b
+    rng = np.random.default_rng(0)
+    b2 = rng.integers(1, 1025, 200_000).astype(np.int32)
+    a2 = rng.integers(0, 1 << 20, 200_000).astype(np.int32)
+    edge = np.arange(1, 1025, dtype=np.int32)
+    a3 = np.concatenate([((1 << 20) // edge) * edge - 1, ((1 << 20) // edge - 1) * edge])  # k·b − 1, k·b
+    b3 = np.concatenate([edge, edge])
+    for aa, bb in ((a, b), (a2, b2), (a3, b3)):
+        q, r = jax.jit(_small_divmod, static_argnums=2)(jnp.asarray(aa), jnp.asarray(bb), 1 << 20)
+        np.testing.assert_array_equal(q, aa // bb)
+        np.testing.assert_array_equal(r, aa % bb)
+    q, r = _small_divmod(jnp.asarray([7]), jnp.asarray([3]), 1 << 21)  # above the bound: integers
+    assert (int(q[0]), int(r[0])) == (2, 1)

@@ -374,6 +374,17 @@ def _boxes(pair, filled, directions, shell):
     return c0, c1, r0, r1
 
 
+def _small_divmod(a: Int[Array, "..."], b: Int[Array, "..."], bound: int) -> tuple[Array, Array]:
+    """``(a // b, a % b)`` of int32 ``0 ≤ a < bound``, ``b ≥ 1``. For ``bound ≤ 2^20`` through a float32
+    quotient: ``(a + 0.5) / b`` is computed within ``2^-3 / b`` of its value, less than its ``0.5 / b``
+    margin to the next integer, so its floor is exact (integer division was 5 of the 9 ms of the
+    bunny's pixel-list expansion, BENCHMARKS.md); integer division above that bound."""
+    if bound > 1 << 20:
+        return a // b, a % b
+    quo = jnp.floor((a.astype(jnp.float32) + 0.5) / b.astype(jnp.float32)).astype(a.dtype)
+    return quo, a - quo * b
+
+
 def _pixel_lists(pair, filled, *, directions, shell, views, piece_slots, window):
     """The silhouette edges of each pixel: every (pair, pixel) of the edges' bounding boxes, sorted
     by (view, pixel), as a table (Q + window, 6) of ``A_x, A_y, B_x, B_y, w, slot`` and per pixel its
@@ -400,8 +411,9 @@ def _pixel_lists(pair, filled, *, directions, shell, views, piece_slots, window)
     i = jnp.arange(q, dtype=jnp.int32)
     valid = i < total
     local = i - first[owner]
-    row = r0[owner] + local // wid[owner]
-    col = c0[owner] + local % wid[owner]
+    w_o = wid[owner]
+    quo, rem = _small_divmod(local, w_o, nx * ny)  # a box holds fewer than nx·ny entries
+    row, col = r0[owner] + quo, c0[owner] + rem
     view = pair["view"][owner]
     cells = views * ny * nx
     key = jnp.where(valid, (view * ny + row) * nx + col, cells)
