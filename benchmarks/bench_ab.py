@@ -40,42 +40,17 @@ def export_base(commit: str, folder: pathlib.Path) -> None:
     (folder / "jshadow").rename(folder / "jshadow_base")
 
 
-def many_spheres(pkg: str, k: int, n_plane: int = 160, far: int = 0):
-    """``bench_render.many_spheres`` built from package ``pkg``: k sphere occluders (radius 0.25,
-    random positions, seed 0) over an n_plane² plane under a constant environment, paper method;
-    the last ``far`` of them lifted 50 units up, beyond every receiver's range."""
-    ent = importlib.import_module(f"{pkg}.entities")
-    rng = np.random.default_rng(0)
-    occ = tuple(
-        ent.SphereOccluder(
-            jnp.asarray(
-                [*rng.uniform(-1.5, 1.5, 1), rng.uniform(0.6, 1.6), *rng.uniform(-1.5, 1.5, 1)], jnp.float32
-            ),
-            jnp.float32(0.25),
-        )
-        for _ in range(k)
-    )
-    lift = jnp.asarray([0.0, 50.0, 0.0], jnp.float32)
-    occ = tuple(
-        o if i < k - far else ent.SphereOccluder(o.center + lift, o.radius) for i, o in enumerate(occ)
-    )
-    xs = np.linspace(-2.0, 2.0, n_plane, dtype=np.float32)
-    x, z = np.meshgrid(xs, xs)
-    pts = np.stack([x.ravel(), np.zeros(x.size, np.float32), z.ravel()], -1)
-    nrm = np.tile(np.float32([0, 1, 0]), (x.size, 1))
-    rec = ent.Receivers(jnp.asarray(pts), jnp.asarray(nrm), jnp.full(3, 0.8, jnp.float32), (n_plane, n_plane))
-    return ent.Scene(ent.Method.paper(), rec, occ, (), ent.Environment(jnp.ones(3, jnp.float32)), n_frames=2)
-
-
 def shading_call(pkg: str, cfg: str):
     """A zero-argument function running one frame's shading of ``cfg`` with package ``pkg``;
-    ``cfg = "spheres:K"`` is :func:`many_spheres` (the spheres through the BSV path), ``"spheres:K:F"``
-    the same with the last F of them beyond every receiver's range."""
+    ``cfg = "spheres:K"`` is ``bench_render.many_spheres`` (the spheres through the BSV path),
+    ``"spheres:K:F"`` the same with the last F of them beyond every receiver's range."""
     js = importlib.import_module(pkg)
     runner = importlib.import_module(f"{pkg}.runner")
     if cfg.startswith("spheres:"):
         k, far = (int(x) for x in (cfg.split(":")[1:] + ["0"])[:2])
-        scene = many_spheres(pkg, k, far=far)
+        from bench_render import many_spheres  # the same scene, built from package pkg
+
+        scene = many_spheres(k, far=far, ent=importlib.import_module(f"{pkg}.entities"))
         r = runner.Renderer(scene, sphere_path="bsv")
     else:
         scene = js.build_scene(js.load_config(cfg))

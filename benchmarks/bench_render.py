@@ -38,8 +38,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jshadow import entities as _entities
 from jshadow.config import build_scene, config_from_dict
-from jshadow.entities import Environment, Method, Receivers, Scene, SphereOccluder
 from jshadow.runner import Renderer, render_frames
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
@@ -122,26 +122,36 @@ def receiver_sweep(config, frames, resolutions=(80, 160, 320)):
     return {"rows": rows, "marginal_us_per_receiver": 1e3 * float(slope), "fixed_ms": float(fixed)}
 
 
-def plane(n, size=4.0):
+def plane(n, size=4.0, ent=None):
+    """An n² plane of receivers (y = 0, normal +y) of ``size``, from the entities module ``ent``
+    (default ``jshadow.entities``; ``bench_ab.py`` passes another package's)."""
+    ent = ent or _entities
     xs = np.linspace(-size / 2, size / 2, n, dtype=np.float32)
     x, z = np.meshgrid(xs, xs)
     pts = np.stack([x.ravel(), np.zeros(x.size, np.float32), z.ravel()], -1)
     nrm = np.tile(np.float32([0, 1, 0]), (x.size, 1))
-    return Receivers(jnp.asarray(pts), jnp.asarray(nrm), jnp.full(3, 0.8, jnp.float32), (n, n))
+    return ent.Receivers(jnp.asarray(pts), jnp.asarray(nrm), jnp.full(3, 0.8, jnp.float32), (n, n))
 
 
-def many_spheres(k, n_plane=160):
+def many_spheres(k, n_plane=160, far=0, ent=None):
+    """k sphere occluders (radius 0.25, random positions, seed 0) over an n_plane² plane under a
+    constant environment, paper method; the last ``far`` of them lifted 50 units up, beyond every
+    receiver's range. ``ent``: as :func:`plane`."""
+    ent = ent or _entities
     rng = np.random.default_rng(0)
-    occ = tuple(
-        SphereOccluder(
-            jnp.asarray(
-                [*rng.uniform(-1.5, 1.5, 1), rng.uniform(0.6, 1.6), *rng.uniform(-1.5, 1.5, 1)], jnp.float32
-            ),
-            jnp.float32(0.25),
+    centres = [
+        np.asarray(
+            [*rng.uniform(-1.5, 1.5, 1), rng.uniform(0.6, 1.6), *rng.uniform(-1.5, 1.5, 1)], np.float32
         )
         for _ in range(k)
+    ]
+    lift = np.float32([0.0, 50.0, 0.0])
+    occ = tuple(
+        ent.SphereOccluder(jnp.asarray(c if i < k - far else c + lift), jnp.float32(0.25))
+        for i, c in enumerate(centres)
     )
-    return Scene(Method.paper(), plane(n_plane), occ, (), Environment(jnp.ones(3, jnp.float32)), n_frames=2)
+    env = ent.Environment(jnp.ones(3, jnp.float32))
+    return ent.Scene(ent.Method.paper(), plane(n_plane, ent=ent), occ, (), env, n_frames=2)
 
 
 def machine_probe() -> dict:

@@ -97,8 +97,8 @@ def _receivers(scene, t):
 @eqx.filter_jit
 def _fields(scene, bsvs, points, own=None):
     vis, dist = occluder_visibilities(scene, bsvs, points, own)
-    # one (m, N, n²) array across the jit boundary, not m separate ones: the product chain in _combine
-    # stacks them again (measured with 16 occluders: combination 49 -> 44 ms, BENCHMARKS.md)
+    # one (m, N, n²) array across the jit boundary, not m separate ones (measured with 16 occluders,
+    # when the product chain stacked them again: combination 49 -> 44 ms, BENCHMARKS.md)
     return (jnp.stack(vis), jnp.stack(dist)) if vis else (vis, dist)
 
 

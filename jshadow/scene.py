@@ -902,8 +902,9 @@ def _product(vs: list) -> Float[Array, "N n2"] | None:
     Computed with the coefficient axis first (:func:`jshadow.sh.sh_product_t`). Each product is a
     stage (:func:`jshadow.visibility._edgescan.staged`): its operands are buffers. Without that,
     XLA:CPU fused the producers of a product (the fields' gathers and rotations) into it and
-    recomputed them for every term: one occluder's product with another took 7.2 ms where the
-    staged one takes 3.0 (BENCHMARKS.md, "Many occluders"). Up to ``_UNROLLED_FIELDS`` factors
+    recomputed them for every term: 4 sphere occluders with the last product split off
+    (:func:`combine`) took 12.1 ms with the other three multiplied inline, 7.6 ms staged
+    (BENCHMARKS.md, "Many occluders"). Up to ``_UNROLLED_FIELDS`` factors
     are multiplied one after another (no stacked copy of all of them); more go through one
     ``lax.scan`` (compiled once, however many there are).
     """
