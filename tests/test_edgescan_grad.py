@@ -353,3 +353,60 @@ def test_small_divmod_is_exact_up_to_its_bound():
         np.testing.assert_array_equal(r, aa % bb)
     q, r = _small_divmod(jnp.asarray([7]), jnp.asarray([3]), 1 << 21)  # above the bound: integers
     assert (int(q[0]), int(r[0])) == (2, 1)
+
+
+def test_crossing_counts_of_pixel_relative_entries_match_a_direct_count():
+    # _entries stores each list entry relative to its pixel centre C, oriented with C on its right,
+    # with its count change and pair slot in one number; _crossings then counts the signed
+    # crossings of C → q. Against the direct formula Σ w'·(sgn s'(q) − sgn s'(C))/2 over the edges
+    # that cross the segment, leaving out the node's own pair; edges through C never count
+    from jshadow.visibility._edgescan_grad import _centre, _crossings, _entries
+
+    rng = np.random.default_rng(3)
+    nx = ny = 4
+    shell = 1.5
+    tan_a = 1.0 / math.sqrt(shell * shell - 1.0)
+    s, width = 64, 64
+    pair = {k: jnp.asarray(rng.uniform(-tan_a, tan_a, s), jnp.float32) for k in ("ax", "ay", "bx", "by")}
+    pair["w"] = jnp.asarray(rng.choice([-1.0, 1.0], s), jnp.float32)
+    pix = 5  # every entry listed in pixel (row 1, col 1)
+    c = _centre(jnp.asarray(1), tan_a, 4, jnp.float32)
+    cx = cy = float(c)
+    for i, axis in enumerate("xxyy"):  # C on the lines of four edges: x = C_x or y = C_y, exactly
+        for end in "ab":
+            pair[end + axis] = pair[end + axis].at[i].set(c)
+    skey = jnp.full(s, pix, jnp.int32)
+    sowner = jnp.arange(s, dtype=jnp.int32)
+    table = _entries(pair, skey, sowner, directions=(ny, nx), shell=shell, window=width)
+    assert np.all(np.asarray(table)[:4, 4] == 0) and np.all(np.asarray(table)[4:s, 4] != 0)  # c = 0 on C
+    m = 200
+    qx = cx + rng.uniform(-0.5, 0.5, m) * (2 * tan_a / nx)
+    qy = cy + rng.uniform(-0.5, 0.5, m) * (2 * tan_a / ny)
+    sid = rng.integers(0, s, m).astype(np.int32)
+    got = _crossings(
+        table,
+        jnp.zeros(m, jnp.int32),
+        jnp.full(m, s, jnp.int32),
+        jnp.asarray(sid),
+        jnp.asarray(qx - cx, jnp.float32),
+        jnp.asarray(qy - cy, jnp.float32),
+        lo=0,
+        width=width,
+    )
+    p = {k: np.asarray(v, np.float64) for k, v in pair.items()}
+
+    def orient(ax, ay, bx, by, x, y):
+        return (bx - ax) * (y - ay) - (by - ay) * (x - ax)
+
+    want = np.zeros(m)
+    for j in range(m):
+        for e in range(s):
+            if e == sid[j]:
+                continue
+            a_x, a_y, b_x, b_y = p["ax"][e], p["ay"][e], p["bx"][e], p["by"][e]
+            s_c, s_q = orient(a_x, a_y, b_x, b_y, cx, cy), orient(a_x, a_y, b_x, b_y, qx[j], qy[j])
+            d_a, d_b = orient(cx, cy, qx[j], qy[j], a_x, a_y), orient(cx, cy, qx[j], qy[j], b_x, b_y)
+            if s_c * s_q < 0 and d_a * d_b < 0:
+                want[j] += 0.5 * p["w"][e] * (np.sign(s_q) - np.sign(s_c))
+    assert np.abs(want).max() >= 2  # several crossings per segment, of both signs
+    np.testing.assert_array_equal(np.asarray(got), want)

@@ -144,6 +144,20 @@ def _cell(x, tan_a, n):
     return jnp.clip(jnp.floor((x + tan_a) * (n / (2.0 * tan_a))), 0, n - 1).astype(jnp.int32)
 
 
+@lru_cache(maxsize=16)
+def _np_centres(n, tan_a):
+    """Image coordinates of the ``n`` pixel centres along one axis (one table, so that every
+    computation that compares with a pixel centre sees the same numbers)."""
+    return -tan_a + (np.arange(n) + 0.5) * (2.0 * tan_a / n)
+
+
+def _centre(i, tan_a, n, dtype):
+    """Image coordinate of the centre of pixel ``i`` (int) along an axis of ``n`` pixels."""
+    with jax.ensure_compile_time_eval():
+        table = jnp.asarray(_np_centres(n, tan_a), dtype)
+    return table[i]
+
+
 def _orient(ax, ay, bx, by, x, y):
     """``(B − A) × (X − A)``: positive when X lies to the left of the line A → B."""
     return (bx - ax) * (y - ay) - (by - ay) * (x - ax)
@@ -387,7 +401,7 @@ def _small_divmod(a: Int[Array, "..."], b: Int[Array, "..."], bound: int) -> tup
 
 def _pixel_lists(pair, filled, *, directions, shell, views, piece_slots, window):
     """The silhouette edges of each pixel: every (pair, pixel) of the edges' bounding boxes, sorted
-    by (view, pixel), as a table (Q + window, 6) of ``A_x, A_y, B_x, B_y, w, slot`` and per pixel its
+    by (view, pixel), as a table (Q + window, 5) of :func:`_entries` and per pixel its
     ``start`` and length ``size`` ((G·N_y·N_x,) each, row-major pixels); and the overflow flag.
 
     The entries are expanded in the order of the pairs (grouped by view) and sorted by one int32 key
@@ -433,34 +447,60 @@ def _pixel_lists(pair, filled, *, directions, shell, views, piece_slots, window)
         perm = argsort_keys(key.astype(jnp.uint32))
         skey, sowner = key[perm], owner[perm]
         overflow = jnp.zeros((), bool)
-    slot_id = jnp.arange(k.shape[0]).astype(pair["ax"].dtype)
-    data = jnp.stack([pair["ax"], pair["ay"], pair["bx"], pair["by"], pair["w"], slot_id], axis=-1)
-    # ``window`` rows past the end, so that every node's window of the list is in bounds
-    table = data[jnp.concatenate([sowner, jnp.zeros(window, sowner.dtype)])]
+    table = _entries(pair, skey, sowner, directions=directions, shell=shell, window=window)
     size = jnp.zeros(cells + 1, jnp.int32).at[key].add(1)[:cells]
     start = _cumsum(size) - size
     return table, start, size, overflow | (total > q)
+
+
+def _entries(pair, skey, sowner, *, directions, shell, window):
+    """The sorted list entries as rows ``A'_x, A'_y, B'_x, B'_y, c·(slot + 1)`` (Q + window, 5) for
+    :func:`_crossings`: the end points relative to the centre C of the entry's pixel, ordered so that
+    C lies to the right of A' → B' (``orient(A', B', 0) < 0``), and the count change ``c`` on
+    crossing from C's side to the other, ``−w'·sgn orient(A, B, C)`` (0 when C lies on the line: such
+    an edge never counts as crossed), times the entry's pair slot + 1 (exact in float32 below 2^24
+    slots), so that a node can leave its own pair out. ``window`` zero rows past the end keep every
+    node's window of the list in bounds."""
+    if pair["ax"].shape[0] >= 1 << 24:
+        raise ValueError("more than 2^24 silhouette pair slots: their ids are not exact in float32")
+    ny, nx = directions
+    tan_a = 1.0 / math.sqrt(shell * shell - 1.0)
+    dtype = pair["ax"].dtype
+    col, row = skey % nx, (skey // nx) % ny  # (padding keys: any pixel; masked by the list sizes)
+    cx, cy = _centre(col, tan_a, nx, dtype), _centre(row, tan_a, ny, dtype)
+    ax, ay = pair["ax"][sowner] - cx, pair["ay"][sowner] - cy
+    bx, by = pair["bx"][sowner] - cx, pair["by"][sowner] - cy
+    side = jnp.sign(_orient(ax, ay, bx, by, 0.0, 0.0))
+    flip = side > 0
+    ax, bx = jnp.where(flip, bx, ax), jnp.where(flip, ax, bx)
+    ay, by = jnp.where(flip, by, ay), jnp.where(flip, ay, by)
+    change = -pair["w"][sowner] * side * (sowner + 1).astype(dtype)
+    data = jnp.stack([ax, ay, bx, by, change], axis=-1)
+    return jnp.concatenate([data, jnp.zeros((window, 5), dtype)])
 
 
 _TIERS = (16, 32)  # pixel-list entries every node reads, then the nodes of longer lists; the rest
 # of the longest lists (over 48 entries) is read by their nodes alone
 
 
-def _crossings(padded, st, sz, sid, x, y, cx, cy, *, lo, width):
+def _crossings(padded, st, sz, sid, ux, uy, *, lo, width):
     """``Σ w'·(sgn s'(q) − sgn s'(C))/2`` over the list entries ``lo … lo + width − 1`` of each
-    node's pixel that cross the segment C → q (and are not the node's own pair ``sid``): (M,)."""
+    node's pixel that cross the segment C → q (and are not the node's own pair ``sid``): (M,).
+    ``u = q − C`` and the entries (:func:`_entries`) are relative to the pixel centre C, each edge
+    oriented with C on its right (``s'(C) < 0``), so a crossing is ``s'(q) > 0`` with the end points
+    on either side of the line C → q, and it changes the count by the entry's ``c``."""
     cols = padded.shape[1]
     zero = jnp.zeros((), st.dtype)
     win = jax.vmap(lambda s0: lax.dynamic_slice(padded, (s0 + lo, zero), (width, cols)))(st)
-    wx0, wy0, wx1, wy1, ww, wid = (win[..., m] for m in range(6))
-    ok = (lo + jnp.arange(width, dtype=sz.dtype) < sz[:, None]) & (wid != sid[:, None].astype(x.dtype))
-    xq, yq, xc, yc = x[:, None], y[:, None], cx[:, None], cy[:, None]
-    s_c = _orient(wx0, wy0, wx1, wy1, xc, yc)
+    wx0, wy0, wx1, wy1, tagged = (win[..., m] for m in range(5))
+    own = (sid + 1).astype(ux.dtype)[:, None]
+    ok = (lo + jnp.arange(width, dtype=sz.dtype) < sz[:, None]) & (jnp.abs(tagged) != own)
+    xq, yq = ux[:, None], uy[:, None]
     s_q = _orient(wx0, wy0, wx1, wy1, xq, yq)
-    d_a = _orient(xc, yc, xq, yq, wx0, wy0)
-    d_b = _orient(xc, yc, xq, yq, wx1, wy1)
-    cross = ok & (s_c * s_q < 0) & (d_a * d_b < 0)
-    return jnp.sum(jnp.where(cross, 0.5 * ww * (jnp.sign(s_q) - jnp.sign(s_c)), 0.0), axis=-1)
+    d_a = xq * wy0 - yq * wx0  # orient(C, q, A')
+    d_b = xq * wy1 - yq * wx1
+    cross = ok & (s_q > 0) & (d_a * d_b < 0)
+    return jnp.sum(jnp.where(cross, jnp.sign(tagged), 0.0), axis=-1)
 
 
 def _live_blocks(rows: int) -> int:
@@ -472,14 +512,14 @@ def _live_blocks(rows: int) -> int:
     return max(1, min(8, rows // 32768)) if jax.default_backend() == "cpu" else 1
 
 
-def _crossings_live(n_live, table, st, sz, sid, x, y, cx, cy, *, lo, width):
+def _crossings_live(n_live, table, st, sz, sid, ux, uy, *, lo, width):
     """:func:`_crossings` of rows of which only the first ``n_live`` (a run-time count) are used: the
     rest are padding, whose values the caller masks. Computed in blocks; a block wholly past
     ``n_live`` is not computed (zeros)."""
-    m = x.shape[0]
+    m = ux.shape[0]
     blocks = _live_blocks(m)
     if blocks == 1:
-        return _crossings(table, st, sz, sid, x, y, cx, cy, lo=lo, width=width)
+        return _crossings(table, st, sz, sid, ux, uy, lo=lo, width=width)
     size = -(-m // blocks)
 
     def run(args):
@@ -490,7 +530,7 @@ def _crossings_live(n_live, table, st, sz, sid, x, y, cx, cy, *, lo, width):
 
     out = []
     for first in range(0, m, size):
-        args = tuple(a[first : first + size] for a in (st, sz, sid, x, y, cx, cy))
+        args = tuple(a[first : first + size] for a in (st, sz, sid, ux, uy))
         out.append(lax.cond(first < n_live, run, skip, args))
     return jnp.concatenate(out)
 
@@ -522,15 +562,15 @@ def _winding_chi(pair, filled, counts, table, start, size, *, directions, shell,
     key = (view * ny + row) * nx + col
     st, sz = start[key], size[key]
     dtype = x.dtype
-    cx = (-tan_a + (col.astype(dtype) + 0.5) * (2.0 * tan_a / nx)).astype(dtype)
-    cy = (-tan_a + (row.astype(dtype) + 0.5) * (2.0 * tan_a / ny)).astype(dtype)
+    cx, cy = _centre(col, tan_a, nx, dtype), _centre(row, tan_a, ny, dtype)
+    ux, uy = x - cx, y - cy
     # every node reads the first tier; the nodes of longer lists are compacted for the next ones
     # (nodes of padding pairs are no silhouette nodes: left out, whatever list their pixel has)
     real = filled[sid]
     # the filled pairs are a prefix of the slots (compacted), so the real nodes are the first ones
     n_real = jnp.sum(filled.astype(jnp.int32)) * k_
     lo = min(_TIERS[0], window)
-    part = _crossings_live(n_real, table, st, sz, sid, x, y, cx, cy, lo=0, width=lo)
+    part = _crossings_live(n_real, table, st, sz, sid, ux, uy, lo=0, width=lo)
     n_tier = []
     for width, slots in zip((_TIERS[1], window), long_slots, strict=True):
         width = min(width, window - lo)
@@ -540,7 +580,7 @@ def _winding_chi(pair, filled, counts, table, start, size, *, directions, shell,
         pos, n = _compact(_pack((sz > lo) & real), slots)
         n_tier.append(n)
         live, i = pos >= 0, jnp.maximum(pos, 0)
-        rest = _crossings_live(n, table, st[i], sz[i], sid[i], x[i], y[i], cx[i], cy[i], lo=lo, width=width)
+        rest = _crossings_live(n, table, st[i], sz[i], sid[i], ux[i], uy[i], lo=lo, width=width)
         part = part.at[i].add(jnp.where(live, rest, 0.0))
         lo += width
     c_near = counts[view, col, row] + part
