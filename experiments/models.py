@@ -396,24 +396,29 @@ def srf_study() -> dict:
 
     A unit-radiance light of radius 1 at distance d faces a receiver; the exact irradiance is
     π sin²α = π/d². Rows: the paper's SRF (f_k with its Jacobian, shell 1), the concentric-sphere
-    model without a Jacobian (shell 1 and 1.5, table bands 4, 5 and 8, truncated to 4 after M_k), and
-    the closed-form cap in 4 bands (its only error is the truncated cosine).
+    model without a Jacobian (shell 1 and 1.5, table bands 4, 5 and 8, truncated to 4 after M_k; and
+    the m = 0 block alone in 48 bands, :func:`jshadow.scaling.mk_zonal_table`), and the closed-form cap
+    in 4 bands (its only error is the truncated cosine).
     """
     from jshadow.lights import sphere_light_sh, sphere_light_srf
-    from jshadow.scaling import mk_table
+    from jshadow.scaling import mk_table, mk_zonal_table
 
-    dists = [1.6, 2.0, 3.0, 4.0, 6.0, 10.0]
+    dists = [1.6, 2.0, 3.0, 4.0, 6.0, 10.0, 16.0, 24.0]
     settings = {
         "paper (f_k, Jacobian, shell 1)": ("paper", "radiance_jacobian", 1.0, 4),
         "sphere model, shell 1, 4 bands": ("sphere", "radiance", 1.0, 4),
         "sphere model, shell 1.5, 5 bands": ("sphere", "radiance", 1.5, 5),
         "sphere model, shell 1.5, 8 bands": ("sphere", "radiance", 1.5, 8),
+        "sphere model, shell 1.5, 48 zonal bands": ("sphere", "radiance", 1.5, "zonal"),
     }
     normal = jnp.asarray([0.0, 0.0, 1.0])
     cosine = sh.clamped_cosine(normal, 4)
     out = {"distances": dists, "exact": [math.pi / d**2 for d in dists], "relative_error_pct": {}}
     for name, (model, kind, shell, bands) in settings.items():
-        table = mk_table(n=bands, num=32, d_min=0.2, d_max=16.0, kind=kind, model=model)
+        if bands == "zonal":  # the m = 0 block alone (the light's radiance is zonal), 64 distances
+            table = mk_zonal_table(48, num=64, d_min=0.2, d_max=32.0, kind=kind, model=model)
+        else:
+            table = mk_table(n=bands, num=32, d_min=0.2, d_max=16.0, kind=kind, model=model)
         errs = []
         for d in dists:
             l_sh = sphere_light_srf(
@@ -428,6 +433,15 @@ def srf_study() -> dict:
     out["relative_error_pct"]["closed-form cap, 4 bands"] = [
         100 * (c * d**2 / math.pi - 1.0) for c, d in zip(cap, dists, strict=True)
     ]
+    # against the analytic counterpart (the same 4-band clamped cosine on both sides)
+    closed = out["relative_error_pct"]["closed-form cap, 4 bands"]
+    out["relative_to_closed_form_pct"] = {
+        name: [100 * ((1 + e / 100) / (1 + c / 100) - 1) for e, c in zip(errs, closed, strict=True)]
+        for name, errs in out["relative_error_pct"].items()
+        if name != "closed-form cap, 4 bands"
+    }
+    for name, errs in out["relative_to_closed_form_pct"].items():
+        print(f"SRF against the closed form, {name:36s} " + "  ".join(f"{e:+7.2f} %" for e in errs))
     for name, errs in out["relative_error_pct"].items():
         print(
             f"SRF {name:36s} " + "  ".join(f"d={d:g}: {e:+8.1f} %" for d, e in zip(dists, errs, strict=True))

@@ -29,7 +29,7 @@ from jaxtyping import Array, ArrayLike, Float
 from . import sh
 from ._numerics import fast_acos, fast_atan2, safe_div, safe_norm, safe_normalize, safe_sqrt, small_sum
 from .entities import Environment, latlong_to_dir
-from .scaling import MkTable, mk_apply
+from .scaling import MkTable, mk_apply, mk_apply_zonal
 
 __all__ = [
     "read_latlong",
@@ -255,6 +255,20 @@ def cap_zonal_t(one_minus_cos: Float[ArrayLike, "..."], n: int) -> Float[Array, 
     return jnp.stack(out, axis=-1)
 
 
+@lru_cache(maxsize=16)
+def _np_cap_zonal(cos_a: float, n: int) -> np.ndarray:
+    """Zonal coefficients (n,) of the cap {cos θ >= cos_a} in float64: ``z_l = 2π √((2l+1)/4π)
+    ∫_{cos a}^1 P_l``, with ``∫_x^1 P_l = (P_{l−1}(x) − P_{l+1}(x)) / (2l + 1)`` (l >= 1) and the
+    three-term recurrence of P_l (stable for any l, unlike a polynomial in 1 − cos a)."""
+    p = [1.0, cos_a]
+    for l in range(1, n + 1):
+        p.append(((2 * l + 1) * cos_a * p[l] - l * p[l - 1]) / (l + 1))
+    integral = [1.0 - cos_a] + [(p[l - 1] - p[l + 1]) / (2 * l + 1) for l in range(1, n)]
+    return np.asarray(
+        [2.0 * math.pi * math.sqrt((2 * l + 1) / (4.0 * math.pi)) * v for l, v in enumerate(integral)]
+    )
+
+
 def _light_geometry(center, radius, points):
     center, radius, points = jnp.asarray(center), jnp.asarray(radius), jnp.asarray(points)
     if center.shape[-1:] != (3,) or points.shape[-1:] != (3,):
@@ -339,7 +353,12 @@ def sphere_light_srf(
     table with more bands than n gives the band split of :class:`jshadow.entities.Method`. With
     ``table.model == "sphere"`` (the concentric-sphere rescaling, exact for a sphere's cap) and the
     plain-warp "radiance" kind, the only errors left are the truncation of the sampled cap and its
-    warp (tests/test_lights.py measures them against :func:`sphere_light_sh`).
+    warp (tests/test_lights.py measures them against :func:`sphere_light_sh`). The radiance at a
+    point is zonal about the direction to the light's centre, so a zonal table
+    (:func:`jshadow.scaling.mk_zonal_table`: the m = 0 block of M_k in up to 48 bands) carries the
+    sampled cap nearly untruncated: at shell 1.5 with the sphere model and 48 bands, the 4-band
+    coefficients are within 1 % of the closed form from 1.2 to 24 light radii (irradiance on the
+    axis within 0.8 % from 1.05 to 24; 1.2 % at 32, 3 % at 48, where the default table ends).
 
     The radiance sampled on the light's sampling shell (radius r: there the light fills the
     hemisphere toward its centre, a zonal function) is extrapolated to the receiver's distance with
@@ -363,11 +382,15 @@ def sphere_light_srf(
     dtype = d.dtype
     nb = table.n
     t_shell = 1.0 - math.sqrt(1.0 - 1.0 / (shell * shell))  # 1 − cos α on the shell (1: hemisphere)
-    z_r = cap_zonal_t(jnp.full((), t_shell, dtype), nb)
-    s_r = jnp.zeros((nb * nb,), dtype).at[jnp.asarray([l * l + l for l in range(nb)])].set(z_r)
     k = safe_div(shell * radius, d, fill=1e6)
-    s_d = mk_apply(table, k, s_r)
-    z_d = s_d[..., jnp.asarray([l * l + l for l in range(n)])]
+    if table.zonal:  # the cap in up to 48 bands (float64 constants: Horner in t loses them)
+        z_r = jnp.asarray(_np_cap_zonal(1.0 - t_shell, nb), dtype)
+        z_d = mk_apply_zonal(table, k, z_r, n)
+    else:
+        z_r = cap_zonal_t(jnp.full((), t_shell, dtype), nb)
+        s_r = jnp.zeros((nb * nb,), dtype).at[jnp.asarray([l * l + l for l in range(nb)])].set(z_r)
+        s_d = mk_apply(table, k, s_r)
+        z_d = s_d[..., jnp.asarray([l * l + l for l in range(n)])]
     c = sh.zonal_rotate(z_d, axis)
     c = jnp.where((d > radius)[..., None], c, _full_sphere(d.shape, n, c.dtype))
     return c[..., None] * jnp.asarray(radiance)[..., None, :]

@@ -21,12 +21,14 @@ from jshadow.scaling import (
     f_k_inverse,
     mk_apply,
     mk_apply_table,
+    mk_apply_zonal,
     mk_bracket,
     mk_in_range,
     mk_interpolate,
     mk_matrix,
     mk_pattern,
     mk_table,
+    mk_zonal_table,
     srf_jacobian,
 )
 from jshadow.sh import sh_basis_spherical, sh_lm
@@ -483,3 +485,74 @@ def test_bracket_at_nodes_and_its_gradient(table64):
     g = jax.grad(lambda k: mk_bracket(table64, k)[1])
     assert float(g(ks[3] * 1.01)) == pytest.approx(1 / (ks[4] - ks[3]), rel=1e-12)
     assert float(g(ks[-1] * 2)) == 0.0 and float(g(ks[0] / 2)) == 0.0  # clamped
+
+
+# ---- zonal tables ----------------------------------------------------------------------------------
+
+
+@pytest.mark.usefixtures("x64")
+@pytest.mark.parametrize("kind", ["radiance", "radiance_jacobian"])
+@pytest.mark.parametrize("model", MODELS)
+def test_zonal_table_is_the_m0_block_of_mk(kind, model):
+    n = 6
+    t = mk_zonal_table(n, num=5, d_min=0.3, d_max=9.0, kind=kind, model=model, dtype=jnp.float64)
+    assert t.zonal and t.n == n
+    zon = np.asarray([l * l + l for l in range(n)])
+    blocks = np.asarray(mk_interpolate(t, t.ks))  # at the table's own ratios: no interpolation
+    assert blocks.shape == (5, n, n)
+    for k, block in zip(np.asarray(t.ks), blocks, strict=True):
+        np.testing.assert_allclose(block, mk_matrix(k, n, kind, model)[np.ix_(zon, zon)], atol=1e-12)
+
+
+@pytest.mark.parametrize("shape", BATCH_SHAPES)
+def test_apply_zonal_equals_the_dense_block_and_batches(shape, rng):
+    t = mk_zonal_table(8, num=6, d_min=0.5, d_max=6.0)
+    k = jnp.asarray(rng.uniform(0.2, 1.8, shape), jnp.float32)
+    z = jnp.asarray(rng.normal(size=(*shape, 8)), jnp.float32)
+    got = mk_apply_zonal(t, k, z, 3)
+    assert got.shape == (*shape, 3)
+    want = np.einsum("...ij,...j->...i", np.asarray(mk_interpolate(t, k)), np.asarray(z))[..., :3]
+    np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-5)
+    # fewer input bands use the leading columns of the block
+    np.testing.assert_allclose(
+        mk_apply_zonal(t, k, z[..., :5]),
+        np.einsum("...ij,...j->...i", np.asarray(mk_interpolate(t, k))[..., :5, :5], np.asarray(z[..., :5])),
+        rtol=1e-5,
+        atol=1e-5,
+    )
+
+
+@pytest.mark.usefixtures("x64")
+def test_apply_zonal_gradient_against_differences(rng):
+    t = mk_zonal_table(10, num=8, d_min=0.5, d_max=6.0, dtype=jnp.float64)
+    z = jnp.asarray(rng.normal(size=10))
+    w = jnp.asarray(rng.normal(size=4))
+
+    def f(k, z):
+        return jnp.sum(w * mk_apply_zonal(t, k, z, 4))
+
+    k0 = float(0.5 * (t.ks[3] + t.ks[4]))  # inside one table interval: f is linear there in k
+    gk, gz = jax.grad(f, argnums=(0, 1))(jnp.asarray(k0), z)
+    h = 1e-6
+    assert float(gk) == pytest.approx((float(f(k0 + h, z)) - float(f(k0 - h, z))) / (2 * h), rel=1e-6)
+    fd = [(float(f(k0, z.at[i].add(h))) - float(f(k0, z.at[i].add(-h)))) / (2 * h) for i in range(10)]
+    np.testing.assert_allclose(gz, fd, rtol=1e-6, atol=1e-9)
+
+
+def test_zonal_table_validation():
+    z = mk_zonal_table(4, num=3)
+    full = mk_table(n=2, num=2)
+    with pytest.raises(ValueError, match="mk_apply_zonal"):
+        mk_apply(z, 0.5, jnp.zeros(16, jnp.float32))
+    with pytest.raises(ValueError, match="mk_apply_zonal"):
+        mk_apply_table(z, jnp.zeros(16, jnp.float32))
+    with pytest.raises(ValueError, match="zonal table"):
+        mk_apply_zonal(full, 0.5, jnp.zeros(2, jnp.float32))
+    with pytest.raises(ValueError, match="bands"):
+        mk_apply_zonal(z, 0.5, jnp.zeros(5, jnp.float32))
+    with pytest.raises(ValueError, match="bands"):
+        mk_apply_zonal(z, 0.5, jnp.zeros(4, jnp.float32), out_bands=5)
+    with pytest.raises(ValueError, match="1..48"):
+        mk_zonal_table(49)
+    with pytest.raises(ValueError, match="floating"):
+        mk_apply_zonal(z, 0.5, jnp.zeros(4, jnp.int32))

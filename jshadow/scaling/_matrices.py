@@ -23,6 +23,11 @@ for J = 1; row 0 right of the diagonal for the Jacobian kind), so a table stores
 (n − 1) non-zero entries per k (41 for n = 4). The θ integral is computed in float64 numpy by
 Gauss–Legendre quadrature on pieces split where w passes through multiples of π/16 and at the
 kink of the sphere model, which resolves the fast variation of w for small k.
+
+A function that is zonal about the scaling axis stays zonal (M_k keeps m), and only the m = 0 block
+acts on it: :func:`mk_zonal_table` tabulates that block alone, up to :data:`ZONAL_BANDS_MAX` bands
+(a sphere light's radiance field, sampled with many more bands than the lighting keeps, so that the
+warp acts on an almost untruncated cap: :func:`jshadow.lights.sphere_light_srf`).
 """
 
 from __future__ import annotations
@@ -51,14 +56,20 @@ __all__ = [
     "mk_apply_table",
     "mk_bracket",
     "mk_in_range",
+    "mk_zonal_table",
+    "mk_apply_zonal",
+    "ZONAL_BANDS_MAX",
 ]
 
 KINDS = ("occlusion", "radiance", "radiance_jacobian")
+ZONAL_BANDS_MAX = 48
+"""Most bands of :func:`mk_zonal_table`: its quadrature (64 Gauss–Legendre nodes per piece) keeps
+the m = 0 block accurate to about 1e-4 of a sphere light's cap up to here (64 bands measured worse)."""
 
 
-def _check(n: int, kind: str, model: str) -> None:
-    if int(n) != n or not 1 <= n <= 16:
-        raise ValueError(f"n (number of SH bands) must be an integer in 1..16, got {n}")
+def _check(n: int, kind: str, model: str, most: int = 16) -> None:
+    if int(n) != n or not 1 <= n <= most:
+        raise ValueError(f"n (number of SH bands) must be an integer in 1..{most}, got {n}")
     if kind not in KINDS:
         raise ValueError(f"M_k kind must be one of {KINDS}, got {kind!r}")
     if model not in MODELS:
@@ -88,11 +99,12 @@ def mk_pattern(n: int, kind: str | None = None) -> tuple[tuple[int, ...], tuple[
     return tuple(rows), tuple(cols)
 
 
-def _legendre_theta(x: np.ndarray, n: int) -> np.ndarray:
-    """θ-parts y_lm (n, n, ...) with ∫_0^π y_lm y_l'm sin θ dθ = δ_ll' (index [m, l]); x = cos θ."""
+def _legendre_theta(x: np.ndarray, n: int, orders: int | None = None) -> np.ndarray:
+    """θ-parts y_lm (n, n, ...) with ∫_0^π y_lm y_l'm sin θ dθ = δ_ll' (index [m, l]); x = cos θ.
+    Only the first ``orders`` m (default all n) are computed, the rest stay 0."""
     out = np.zeros((n, n, *x.shape))
     s = np.sqrt(np.clip(1.0 - x * x, 0.0, None))
-    for m in range(n):
+    for m in range(n if orders is None else orders):
         p_mm = math.prod(range(2 * m - 1, 0, -2)) * s**m  # P_m^m without the Condon–Shortley phase
         p_prev2, p_prev = None, p_mm
         for l in range(m, n):
@@ -127,23 +139,26 @@ def _nodes(k: float, model: str, nodes: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 @lru_cache(maxsize=256)
-def _blocks(k: float, n: int, kind: str, model: str, nodes: int) -> tuple[np.ndarray, ...]:
-    """Per-m θ-blocks B_m[l, l'] (l, l' = m..n−1) of M_k in float64.
+def _blocks(
+    k: float, n: int, kind: str, model: str, nodes: int, orders: int | None = None
+) -> tuple[np.ndarray, ...]:
+    """Per-m θ-blocks B_m[l, l'] (l, l' = m..n−1) of M_k in float64 (the first ``orders`` m; default all).
 
     J = 1: ``∫ y_l(θ) y_l'(w(θ)) sin θ dθ`` with w = f_{1/k}. Jacobian kind: substituting u = w(θ)
     (J sin θ dθ = sin u du) gives ``∫ y_l(f_k(u)) y_l'(u) sin u du``, which has no singular factor.
     """
     if kind == "radiance_jacobian":
         u, wt = _nodes(1.0 / k, model, nodes)
-        y_i = _legendre_theta(np.cos(_np_map(u, k, model)), n)
-        y_j = _legendre_theta(np.cos(u), n)
+        y_i = _legendre_theta(np.cos(_np_map(u, k, model)), n, orders)
+        y_j = _legendre_theta(np.cos(u), n, orders)
         weight = wt * np.sin(u)
     else:
         theta, wt = _nodes(k, model, nodes)
-        y_i = _legendre_theta(np.cos(theta), n)
-        y_j = _legendre_theta(np.cos(_np_map(theta, 1.0 / k, model)), n)
+        y_i = _legendre_theta(np.cos(theta), n, orders)
+        y_j = _legendre_theta(np.cos(_np_map(theta, 1.0 / k, model)), n, orders)
         weight = wt * np.sin(theta)
-    return tuple(np.einsum("aq,bq,q->ab", y_i[m, m:], y_j[m, m:], weight) for m in range(n))
+    ms = range(n if orders is None else orders)
+    return tuple(np.einsum("aq,bq,q->ab", y_i[m, m:], y_j[m, m:], weight) for m in ms)
 
 
 def mk_matrix(
@@ -174,7 +189,8 @@ class MkTable(eqx.Module):
     """M_k tabulated at ratios ``ks`` (ascending), non-zero entries only.
 
     ``values[t, e]`` is ``M_{ks[t]}[rows[e], cols[e]]`` (pattern from :func:`mk_pattern` with the
-    table's kind). Distances are in units of the sampling-shell radius: k = 1/d.
+    table's kind). Distances are in units of the sampling-shell radius: k = 1/d. A ``zonal`` table
+    (:func:`mk_zonal_table`) holds the m = 0 block only, indexed by band (``rows``, ``cols`` are l, l').
     """
 
     ks: Float[Array, " K"]  # k_t = r/d_t, ascending (d descending)
@@ -184,6 +200,7 @@ class MkTable(eqx.Module):
     n: int = eqx.field(static=True)  # SH bands
     kind: str = eqx.field(static=True, default="occlusion")
     model: str = eqx.field(static=True, default="paper")
+    zonal: bool = eqx.field(static=True, default=False)  # m = 0 block only; rows, cols are bands l
 
     def __check_init__(self):
         if self.ks.ndim != 1 or self.ks.shape[0] < 2:
@@ -223,18 +240,7 @@ def mk_table(
     Call it outside hot loops (it is a few ms per distance); the result is a pytree to pass around.
     """
     _check(n, kind, model)
-    if int(num) != num or num < 2:
-        raise ValueError(f"num (number of tabulated distances) must be an integer >= 2, got {num}")
-    if not (0.0 < d_min < d_max and np.isfinite(d_max)):
-        raise ValueError(f"need 0 < d_min < d_max < inf (shell radii), got d_min={d_min}, d_max={d_max}")
-    d = np.geomspace(d_max, d_min, int(num))  # descending d -> ascending k
-    d[0], d[-1] = d_max, d_min
-    if include_shell and d_min < 1.0 < d_max and num >= 3:
-        # the shell itself (k = 1, M = I) is where interpolation error would be largest: make it a
-        # node, spacing each side geometrically with the intervals shared in proportion to log range
-        n_hi = int(np.clip(round((num - 1) * np.log(d_max) / np.log(d_max / d_min)), 1, num - 2))
-        d = np.concatenate([np.geomspace(d_max, 1.0, n_hi + 1), np.geomspace(1.0, d_min, num - n_hi)[1:]])
-        d[0], d[n_hi], d[-1] = d_max, 1.0, d_min
+    d = _distances(num, d_min, d_max, include_shell)
     ks = 1.0 / d
     rows, cols = mk_pattern(n, kind)
     vals = np.stack([mk_matrix(k, n, kind, model, nodes)[rows, cols] for k in ks])
@@ -248,6 +254,106 @@ def mk_table(
         kind=kind,
         model=model,
     )
+
+
+def _distances(num, d_min, d_max, include_shell) -> np.ndarray:
+    """The tabulated distances, descending (:func:`mk_table`)."""
+    if int(num) != num or num < 2:
+        raise ValueError(f"num (number of tabulated distances) must be an integer >= 2, got {num}")
+    if not (0.0 < d_min < d_max and np.isfinite(d_max)):
+        raise ValueError(f"need 0 < d_min < d_max < inf (shell radii), got d_min={d_min}, d_max={d_max}")
+    d = np.geomspace(d_max, d_min, int(num))  # descending d -> ascending k
+    d[0], d[-1] = d_max, d_min
+    if include_shell and d_min < 1.0 < d_max and num >= 3:
+        # the shell itself (k = 1, M = I) is where interpolation error would be largest: make it a
+        # node, spacing each side geometrically with the intervals shared in proportion to log range
+        n_hi = int(np.clip(round((num - 1) * np.log(d_max) / np.log(d_max / d_min)), 1, num - 2))
+        d = np.concatenate([np.geomspace(d_max, 1.0, n_hi + 1), np.geomspace(1.0, d_min, num - n_hi)[1:]])
+        d[0], d[n_hi], d[-1] = d_max, 1.0, d_min
+    return d
+
+
+def mk_zonal_table(
+    n: int = 48,
+    num: int = 64,
+    d_min: float = 0.2,
+    d_max: float = 32.0,
+    kind: str = "radiance",
+    model: str = "sphere",
+    dtype=None,
+    nodes: int = 64,
+    include_shell: bool = True,
+) -> MkTable:
+    """Tabulate the m = 0 block of M_k (bands l, l' < n) at ``num`` distances (as :func:`mk_table`).
+
+    For functions that are zonal about the scaling axis, such as the radiance a sphere light sends
+    to a point (a cap about the direction to its centre): M_k maps them to zonal functions with this
+    block alone, so they can be carried in up to :data:`ZONAL_BANDS_MAX` bands (n² coefficients of
+    the full matrix would not fit a table). Apply it with :func:`mk_apply_zonal`. The defaults are
+    the sphere-light setting of :func:`jshadow.lights.sphere_light_srf`: the concentric-sphere model
+    (exact for a sphere's cap), no Jacobian, 64 distances up to 32 shell radii.
+    """
+    _check(n, kind, model, most=ZONAL_BANDS_MAX)
+    ks = 1.0 / _distances(num, d_min, d_max, include_shell)
+    if kind in ("occlusion", "radiance"):  # column 0 is e0
+        pairs = [(i, j) for i in range(n) for j in range(n) if j > 0 or i == 0]
+    else:  # row 0 is e0ᵀ
+        pairs = [(i, j) for i in range(n) for j in range(n) if i > 0 or j == 0]
+    rows, cols = (tuple(p[a] for p in pairs) for a in (0, 1))
+    vals = []
+    for k in ks:
+        (block,) = _blocks(float(k), n, kind, model, int(nodes), 1)
+        block = block.copy()
+        if kind in ("occlusion", "radiance"):
+            block[:, 0], block[0, 0] = 0.0, 1.0
+        else:
+            block[0, :], block[0, 0] = 0.0, 1.0
+        vals.append(block[rows, cols])
+    dtype = jnp.result_type(float) if dtype is None else dtype
+    return MkTable(
+        ks=jnp.asarray(ks, dtype),
+        values=jnp.asarray(np.stack(vals), dtype),
+        rows=rows,
+        cols=cols,
+        n=int(n),
+        kind=kind,
+        model=model,
+        zonal=True,
+    )
+
+
+def mk_apply_zonal(
+    table: MkTable,
+    k: Float[ArrayLike, "..."],
+    zonal: Float[ArrayLike, "... nb"],
+    out_bands: int | None = None,
+) -> Float[Array, "... m"]:
+    """The m = 0 block of M_k applied to zonal coefficients (..., nb), nb <= table.n: zonal
+    coefficients (..., out_bands) (default nb) at ratios k (...), linear in k between table points
+    and clamped to its range, as :func:`mk_apply`. Needs a table of :func:`mk_zonal_table`.
+    Differentiable in k (inside the range) and in the coefficients."""
+    if not table.zonal:
+        raise ValueError("mk_apply_zonal needs a zonal table (mk_zonal_table); use mk_apply for this one")
+    z = jnp.asarray(zonal)
+    if not jnp.issubdtype(z.dtype, jnp.floating) or z.ndim == 0:
+        raise ValueError(
+            f"zonal coefficients must be a floating-point array (..., nb), got {z.dtype} {z.shape}"
+        )
+    nb = z.shape[-1]
+    m = nb if out_bands is None else int(out_bands)
+    if not (1 <= nb <= table.n and 1 <= m <= table.n):
+        raise ValueError(f"need 1 <= bands <= {table.n} (the table's), got {nb} in and {m} out")
+    sel = tuple(e for e, (i, j) in enumerate(zip(table.rows, table.cols, strict=True)) if i < m and j < nb)
+    dtype = z.dtype
+    k = jnp.asarray(k).astype(dtype)
+    batch = jnp.broadcast_shapes(k.shape, z.shape[:-1])
+    v = _interp_values(table, jnp.broadcast_to(k, batch), dtype, sel)  # (..., E)
+    rows = np.asarray([table.rows[e] for e in sel], np.int32)
+    cols = np.asarray([table.cols[e] for e in sel], np.int32)
+    scatter = np.zeros((len(sel), m))
+    scatter[np.arange(len(sel)), rows] = 1.0
+    zb = jnp.broadcast_to(z, (*batch, nb))
+    return jnp.matmul(v * zb[..., cols], jnp.asarray(scatter, dtype), precision=jax.lax.Precision.HIGHEST)
 
 
 def _interp_values(table: MkTable, k: Array, dtype, sel: tuple[int, ...] | None = None) -> Array:
@@ -281,7 +387,8 @@ def _float_dtype(*xs):
 
 
 def mk_interpolate(table: MkTable, k: Float[ArrayLike, "..."]) -> Float[Array, "... n2 n2"]:
-    """Dense M_k (..., n², n²) at ratios k (...), linear in k, clamped to the table's range.
+    """Dense M_k (..., n², n²) at ratios k (...), linear in k, clamped to the table's range (of a
+    zonal table: its m = 0 block (..., n, n)).
 
     Differentiable in k inside the range (zero gradient outside it). Forms the dense matrix per k:
     use :func:`mk_apply` to apply it to coefficients.
@@ -290,7 +397,7 @@ def mk_interpolate(table: MkTable, k: Float[ArrayLike, "..."]) -> Float[Array, "
     dtype = _float_dtype(k, table.values)
     k = k.astype(dtype)
     v = _interp_values(table, k, dtype)
-    n2 = table.n * table.n
+    n2 = table.n if table.zonal else table.n * table.n  # a zonal table's m = 0 block (..., n, n)
     out = jnp.zeros((*k.shape, n2, n2), dtype)
     return out.at[..., jnp.asarray(table.rows), jnp.asarray(table.cols)].set(v)
 
@@ -324,6 +431,8 @@ def mk_apply(
 
 def _check_coeffs(table: MkTable, coeffs) -> tuple[Array, int]:
     """coeffs as a floating array and its SH band count, which the table must cover."""
+    if table.zonal:
+        raise ValueError("this M_k table is zonal (mk_zonal_table): apply it with mk_apply_zonal")
     coeffs = jnp.asarray(coeffs)
     if not jnp.issubdtype(coeffs.dtype, jnp.floating):
         raise ValueError(f"coeffs must be a floating-point array, got dtype {coeffs.dtype}")
