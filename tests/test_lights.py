@@ -384,6 +384,28 @@ def test_zonal_srf_matches_the_closed_form_cap_within_one_percent(rng):
     assert max(errs5) > 0.5  # 10 and more light radii away the 5-band table is off by the whole signal
 
 
+@pytest.mark.parametrize("shape", BATCH_SHAPES)
+def test_zonal_srf_batches_and_has_finite_gradients_at_singular_points(shape, rng):
+    # receivers outside, on the surface of, inside and at the centre of the light
+    table = mk_zonal_table(16, num=16)
+    center, radius = jnp.asarray([0.2, 2.0, -0.1], jnp.float32), jnp.float32(0.6)
+    pts = center + jnp.asarray(rng.normal(size=(*shape, 3)), jnp.float32) * 2.0
+    flat = pts.reshape(-1, 3).at[0].set(center + jnp.asarray([0.0, -0.6, 0.0])).reshape(pts.shape)
+    out = sphere_light_srf(center, radius, jnp.ones(3, jnp.float32), flat, 4, table, 1.5)
+    assert out.shape == (*shape, 16, 3) and out.dtype == jnp.float32
+    singular = jnp.stack(
+        [center, center + jnp.asarray([0.0, -0.6, 0.0]), center + jnp.asarray([0.0, 0.0, 0.3])]
+    )
+
+    def f(p, q):
+        return jnp.sum(sphere_light_srf(p[:3], p[3], jnp.ones(1), q, 4, table, 1.5) ** 2)
+
+    params = jnp.concatenate([center, radius[None]])
+    for q in (flat, singular):
+        g = jax.grad(f, argnums=(0, 1))(params, q)
+        assert all(bool(jnp.all(jnp.isfinite(x))) for x in g)
+
+
 def test_srf_validation(srf_tables):
     occ = mk_table(n=2, num=2)
     with pytest.raises(ValueError, match="radiance"):
