@@ -448,9 +448,14 @@ def _pixel_lists(pair, filled, *, directions, shell, views, piece_slots, window)
         skey, sowner = key[perm], owner[perm]
         overflow = jnp.zeros((), bool)
     table = _entries(pair, skey, sowner, directions=directions, shell=shell, window=window)
-    size = jnp.zeros(cells + 1, jnp.int32).at[key].add(1)[:cells]
-    start = _cumsum(size) - size
-    return table, start, size, overflow | (total > q)
+    # each pixel's run in the sorted keys, from its first and last entries (padding keys, >= cells,
+    # land in the dropped last slot): no pass over all G·N_y·N_x pixels but the zeros
+    pix = jnp.minimum(skey, cells)
+    head = jnp.concatenate([jnp.ones(1, bool), pix[1:] != pix[:-1]])
+    tail = jnp.concatenate([pix[1:] != pix[:-1], jnp.ones(1, bool)])
+    start = jnp.zeros(cells + 1, jnp.int32).at[jnp.where(head, pix, cells)].set(i)[:cells]
+    end = jnp.zeros(cells + 1, jnp.int32).at[jnp.where(tail, pix, cells)].set(i + 1)[:cells]
+    return table, start, end - start, overflow | (total > q)
 
 
 def _entries(pair, skey, sowner, *, directions, shell, window):
