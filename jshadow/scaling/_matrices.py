@@ -288,8 +288,8 @@ def mk_zonal_table(
 
     For functions that are zonal about the scaling axis, such as the radiance a sphere light sends
     to a point (a cap about the direction to its centre): M_k maps them to zonal functions with this
-    block alone, so they can be carried in up to :data:`ZONAL_BANDS_MAX` bands (n² coefficients of
-    the full matrix would not fit a table). Apply it with :func:`mk_apply_zonal`. The defaults are
+    block alone, so they can be carried in up to :data:`ZONAL_BANDS_MAX` bands (at 48 bands the full
+    matrix has 2304² positions; this block 48²). Apply it with :func:`mk_apply_zonal`. The defaults are
     the sphere-light setting of :func:`jshadow.lights.sphere_light_srf`: the concentric-sphere model
     (exact for a sphere's cap), no Jacobian, 64 distances up to 32 shell radii.
     """
