@@ -403,7 +403,7 @@ def srf_study() -> dict:
     from jshadow.lights import sphere_light_sh, sphere_light_srf
     from jshadow.scaling import mk_table, mk_zonal_table
 
-    dists = [1.6, 2.0, 3.0, 4.0, 6.0, 10.0, 16.0, 24.0]
+    dists = [1.05, 1.2, 1.6, 2.0, 3.0, 4.0, 6.0, 10.0, 16.0, 24.0, 32.0, 48.0]
     settings = {
         "paper (f_k, Jacobian, shell 1)": ("paper", "radiance_jacobian", 1.0, 4),
         "sphere model, shell 1, 4 bands": ("sphere", "radiance", 1.0, 4),
