@@ -3,7 +3,7 @@
 Usage::
 
     python benchmarks/bench_frame_grad.py [--configs configs/egg_breathing.toml ...] [--runs 5]
-                                          [--json out.json]
+                                          [--light-visibility sh images] [--json out.json]
 
 For each config with a deforming mesh (first occluder) at the middle frame, three jitted calls on the
 same receivers:
@@ -16,6 +16,10 @@ same receivers:
   (silhouette-edge term of the BSV, differentiable field and combination), with the silhouette
   visibility of ``[method] bsv_gradient`` (``--bsv-gradient raycast image scanline`` times each and
   reports the relative difference and cosine between their gradients).
+
+``--light-visibility sh images`` times each setting of ``[method] light_visibility`` in the same run
+(``images``: the sphere lights' visible fractions looked up in the occlusion images, and their
+derivative through the coverage images).
 
 ``--ab-plane-first`` instead times, per config and setting, the forward and value_and_grad with the
 field evaluated on the plane and on the own vertices as two calls (``render_at``'s
@@ -77,15 +81,16 @@ def frame_loss(scene, t):
     return loss
 
 
-def _scene(path: str, bsv_gradient: str):
-    """The config's scene with ``[method] bsv_gradient`` set."""
+def _scene(path: str, bsv_gradient: str, light_visibility: str = "sh"):
+    """The config's scene with ``[method] bsv_gradient`` and ``light_visibility`` set."""
     d = tomllib.loads((ROOT / path).read_text())
     d.setdefault("method", {})["bsv_gradient"] = bsv_gradient
+    d["method"]["light_visibility"] = light_visibility
     return build_scene(config_from_dict(d, source=path, root=(ROOT / path).parent))
 
 
-def bench(path: str, runs: int, bsv_gradient: str = "raycast") -> dict:
-    scene = _scene(path, bsv_gradient)
+def bench(path: str, runs: int, bsv_gradient: str = "raycast", light_visibility: str = "sh") -> dict:
+    scene = _scene(path, bsv_gradient, light_visibility)
     occ = scene.occluders[0]
     if not isinstance(occ, MeshOccluder):
         raise SystemExit(f"{path}: the first occluder is not a mesh")
@@ -106,6 +111,7 @@ def bench(path: str, runs: int, bsv_gradient: str = "raycast") -> dict:
     row = {
         "config": path,
         "bsv_gradient": bsv_gradient,
+        "light_visibility": light_visibility,
         "frame": frame,
         "vertices": int(occ.unit_vertices.shape[0]),
         "faces": int(occ.faces.shape[0]),
@@ -120,9 +126,10 @@ def bench(path: str, runs: int, bsv_gradient: str = "raycast") -> dict:
         "gradient_finite": bool(np.all(np.isfinite(g))),
         "gradient_norm": float(np.linalg.norm(g)),
     }
-    _GRADIENTS[(path, bsv_gradient)] = g
+    _GRADIENTS[(path, bsv_gradient, light_visibility)] = g
     print(
-        f"{path:32s} {bsv_gradient:8s} V={row['vertices']:5d} rec={n_rec:6d}  render {render_ms:7.1f} ms"
+        f"{path:32s} {bsv_gradient:8s} {light_visibility:6s} V={row['vertices']:5d} rec={n_rec:6d}"
+        f"  render {render_ms:7.1f} ms"
         f"  forward {fwd_ms:7.1f} ms"
         f"  value_and_grad {vag_ms:8.1f} ms  backward/forward {row['backward_over_forward']:5.2f}"
         f"  compile {c_f:4.1f} / {c_g:4.1f} s",
@@ -184,20 +191,19 @@ def _compare_gradients(configs, rows) -> None:
     """Each timed gradient against the ray-cast one (and "scanline" against "image"), same loss and
     pose: relative difference, cosine and norm ratio, printed and added to the rows."""
     pairs = [("image", "raycast"), ("scanline", "raycast"), ("scanline", "image")]
-    for c in configs:
-        for mine, other in pairs:
-            if (c, mine) not in _GRADIENTS or (c, other) not in _GRADIENTS:
-                continue
-            a, b = _GRADIENTS[(c, mine)].ravel(), _GRADIENTS[(c, other)].ravel()
-            cmp = {
-                "relative_difference": float(np.linalg.norm(a - b) / np.linalg.norm(b)),
-                "cosine": float(a @ b / (np.linalg.norm(a) * np.linalg.norm(b))),
-                "norm_ratio": float(np.linalg.norm(a) / np.linalg.norm(b)),
-            }
-            for r in rows:
-                if r["config"] == c and r["bsv_gradient"] == mine:
-                    r[f"against_{other}"] = cmp
-            print(f"{c:32s} {mine} vs {other} gradient: " + "  ".join(f"{k} {v:.4f}" for k, v in cmp.items()))
+    for c, mine, other, lv in ((c, m, o, lv) for c in configs for m, o in pairs for lv in ("sh", "images")):
+        if (c, mine, lv) not in _GRADIENTS or (c, other, lv) not in _GRADIENTS:
+            continue
+        a, b = _GRADIENTS[(c, mine, lv)].ravel(), _GRADIENTS[(c, other, lv)].ravel()
+        cmp = {
+            "relative_difference": float(np.linalg.norm(a - b) / np.linalg.norm(b)),
+            "cosine": float(a @ b / (np.linalg.norm(a) * np.linalg.norm(b))),
+            "norm_ratio": float(np.linalg.norm(a) / np.linalg.norm(b)),
+        }
+        for r in rows:
+            if r["config"] == c and r["bsv_gradient"] == mine and r["light_visibility"] == lv:
+                r[f"against_{other}"] = cmp
+        print(f"{c:32s} {mine} vs {other} ({lv}): " + "  ".join(f"{k} {v:.4f}" for k, v in cmp.items()))
 
 
 def main(argv=None) -> int:
@@ -212,13 +218,25 @@ def main(argv=None) -> int:
         choices=["raycast", "image", "scanline"],
         help="[method] bsv_gradient settings to time (same run; 'auto' is 'image' for these configs)",
     )
+    ap.add_argument(
+        "--light-visibility",
+        nargs="*",
+        default=["sh"],
+        choices=["sh", "images"],
+        help="[method] light_visibility settings to time (same run; 'images' differentiates the lookups)",
+    )
     ap.add_argument("--ab-plane-first", action="store_true", help="time plane_first=True against False")
     args = ap.parse_args(argv)
     load = os.getloadavg()[0]
     if args.ab_plane_first:
         rows = [ab_plane_first(c, args.runs, g) for c in args.configs for g in args.bsv_gradient]
     else:
-        rows = [bench(c, args.runs, g) for c in args.configs for g in args.bsv_gradient]
+        rows = [
+            bench(c, args.runs, g, lv)
+            for c in args.configs
+            for g in args.bsv_gradient
+            for lv in args.light_visibility
+        ]
         _compare_gradients(args.configs, rows)
     meta = {
         "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),

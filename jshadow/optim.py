@@ -31,7 +31,7 @@ from jaxtyping import Array, Float
 
 from ._types import Faces
 from .entities import Scene, frame_time
-from .scene import render, render_at, scene_bsvs
+from .scene import render, render_at, scene_bsvs_and_images, uses_light_images
 
 __all__ = [
     "FitResult",
@@ -82,18 +82,21 @@ def plane_radiances(scene: Scene, light_sets: Sequence[tuple], frame: int = 0) -
         frame: the animation frame.
 
     Returns:
-        (K, N_plane, 3) outgoing radiance. The occluders' BSVs are sampled once and shared by the K
-        renderings (they do not depend on the lights), so K targets cost about one BSV.
+        (K, N_plane, 3) outgoing radiance. The occluders' BSVs (and occlusion images) are sampled
+        once and shared by the K renderings (they do not depend on the lights), so K targets cost
+        about one BSV.
     """
     if len(light_sets) == 0:
         raise ValueError("plane_radiances expects at least one light set, got none")
     t = frame_time(frame, scene.n_frames)
-    bsvs = scene_bsvs(scene, t)
+    # with light_visibility = "images" a set with lights needs the occlusion images too
+    lit = next((tuple(s) for s in light_sets if len(s)), ())
+    bsvs, images = scene_bsvs_and_images(eqx.tree_at(lambda s: s.lights, scene, lit), t)
     n = scene.receivers.points.shape[0]
     out = []
     for lights in light_sets:
         sc = eqx.tree_at(lambda s: s.lights, scene, tuple(lights))
-        out.append(render_at(sc, t, bsvs=bsvs).radiance[:n])
+        out.append(render_at(sc, t, bsvs=bsvs, images=images if uses_light_images(sc) else None).radiance[:n])
     return jnp.stack(out)
 
 

@@ -483,7 +483,7 @@ class Renderer:
                 out.append(self._fresh_images.pop(i))
                 self.image_computations += 1
                 continue
-            img = occluder_images(occ, 0.0 if static else t, self.scene)
+            img = occluder_images(occ, 0.0 if static else t, self.scene, differentiable=False)
             self.image_computations += img is not None
             if static:
                 self._static_images[i] = img

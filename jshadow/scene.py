@@ -61,6 +61,7 @@ from .scaling import MkTable, mk_table
 from .visibility import (
     BSV,
     OcclusionImages,
+    bsv_and_coverage_edgescan_diff,
     bsv_mesh,
     bsv_mesh_diff,
     bsv_mesh_edgescan,
@@ -104,6 +105,7 @@ __all__ = [
     "occluder_images",
     "occluder_bsv_and_images",
     "scene_images",
+    "scene_bsvs_and_images",
     "light_visible_fractions",
     "environment_visible_fraction",
     "image_fractions",
@@ -592,10 +594,10 @@ def assemble_own_rows(
 
 
 LIGHT_IMAGES_NO_DERIVATIVE = (
-    "method.light_visibility = 'images' looks rays to the sphere lights (and to the environment's "
-    "bright part, with environment_lights) up in binary occlusion images, "
-    "which have no derivative with respect to geometry (vertices, occluder or light positions and "
-    "radii, receivers): differentiate with light_visibility = 'sh' (radiance derivatives work with both)"
+    "method.light_visibility = 'images' tests the rays to the sphere lights (and to the environment's "
+    "bright part, with environment_lights) against sphere occluders exactly, a binary test with no "
+    "derivative with respect to those spheres' centres and radii: differentiate them with "
+    "light_visibility = 'sh' (mesh occluders, lights and receivers have derivatives with both)"
 )
 
 
@@ -622,11 +624,19 @@ def uses_light_images(scene: Scene) -> bool:
     )
 
 
-def occluder_images(occ, t, scene: Scene) -> OcclusionImages | None:
+def occluder_images(occ, t, scene: Scene, differentiable: bool = True) -> OcclusionImages | None:
     """The occlusion images (:func:`jshadow.visibility.occlusion_images`) of a mesh occluder at time
     t on the method's shell, grid and directions; None for a sphere occluder (an exact ray test is
-    used instead). Differentiating them with respect to the vertices raises
-    :data:`LIGHT_IMAGES_NO_DERIVATIVE`."""
+    used instead).
+
+    With ``differentiable`` the images are 0.0 / 1.0 *coverage* floats, so that lookups carry the
+    derivative of the read point's motion (lights, receivers, the occluder's placement), and for
+    traced vertices also the silhouette boundary term of
+    :func:`jshadow.visibility.bsv_and_coverage_edgescan_diff` (which needs the edge-scan: concrete
+    closed manifold faces; a mesh without it raises :data:`TRACED_FACES` when differentiated).
+    ``differentiable=False`` gives the boolean images (the :class:`jshadow.runner.Renderer`'s, no
+    derivative at all).
+    """
     if not isinstance(occ, MeshOccluder):
         return None
     m = scene.method
@@ -636,7 +646,31 @@ def occluder_images(occ, t, scene: Scene) -> OcclusionImages | None:
     def forward(x):
         return occlusion_images(x, faces, tuple(m.bsv_grid), tuple(m.directions), float(m.shell))
 
-    return _no_derivative_guard(forward, v, LIGHT_IMAGES_NO_DERIVATIVE)
+    if not differentiable:
+        return _no_derivative_guard(forward, v, LIGHT_IMAGES_NO_DERIVATIVE)
+    faces_np = _concrete(faces)
+    if isinstance(v, jax.core.Tracer) and faces_np is not None and _uses_edgescan(m, faces_np):
+        return _mesh_bsv_and_images(occ, v, faces_np, m)[1]
+    img = _no_derivative_guard(forward, v)
+    return OcclusionImages(
+        occluded=img.occluded.astype(v.dtype), center=img.center, radius=img.radius, shell=img.shell
+    )
+
+
+def _mesh_bsv_and_images(occ: MeshOccluder, v, faces: np.ndarray, m) -> tuple[BSV, OcclusionImages]:
+    """The differentiable BSV (``bsv_gradient = "image"``'s derivative) and coverage images of the
+    sampler's input vertices ``v`` from one edge-scan and one set of silhouette derivative terms
+    (:func:`jshadow.visibility.bsv_and_coverage_edgescan_diff`)."""
+    es = _edgescan_slots(occ, faces, m)
+    grad_slots = _image_grad_slots(occ, faces, m, lazy=True)
+    coeffs, cov = bsv_and_coverage_edgescan_diff(
+        v, faces, m.field_bands, m.bsv_grid, m.directions, m.shell, slots=es, grad_slots=grad_slots
+    )
+    center, radius = bounding_sphere(v)
+    if _placed(occ, m):
+        center = jnp.asarray(occ.center, v.dtype)  # as mesh_bsv: no identically-zero vertex path
+    bsv = BSV(coeffs=coeffs, center=center, radius=radius, shell_radius=m.shell * radius)
+    return bsv, OcclusionImages(occluded=cov, center=center, radius=radius, shell=float(m.shell))
 
 
 def occluder_bsv_and_images(occ: MeshOccluder, t, scene: Scene) -> tuple[BSV, OcclusionImages] | None:
@@ -661,6 +695,30 @@ def scene_images(scene: Scene, t) -> tuple[OcclusionImages | None, ...] | None:
     return tuple(occluder_images(o, t, scene) for o in scene.occluders)
 
 
+def scene_bsvs_and_images(
+    scene: Scene, t, sphere_path: str = "analytic"
+) -> tuple[tuple[BSV | None, ...], tuple[OcclusionImages | None, ...] | None]:
+    """:func:`scene_bsvs` and :func:`scene_images` at time t, a mesh occluder's two from one
+    edge-scan (and one set of derivative terms) where both carry the ``"image"`` silhouette
+    derivative (:func:`_mesh_bsv_and_images`); else each as those functions make it."""
+    if not uses_light_images(scene):
+        return scene_bsvs(scene, t, sphere_path), None
+    m = scene.method
+    bsvs, images = [], []
+    for occ in scene.occluders:
+        faces = _concrete(occ.faces) if isinstance(occ, MeshOccluder) else None
+        if faces is not None and _uses_edgescan(m, faces) and bsv_gradient_mode(m, faces) == "image":
+            v = bsv_input_vertices(occ, _vertices_at(occ, jnp.asarray(t, occ.unit_vertices.dtype)), m)
+            if isinstance(v, jax.core.Tracer):
+                bsv, img = _mesh_bsv_and_images(occ, v, faces, m)
+                bsvs.append(bsv)
+                images.append(img)
+                continue
+        bsvs.append(occluder_bsv(occ, t, scene, sphere_path))
+        images.append(occluder_images(occ, t, scene))
+    return tuple(bsvs), tuple(images)
+
+
 def light_visible_fractions(
     scene: Scene,
     images: tuple[OcclusionImages | None, ...],
@@ -675,14 +733,21 @@ def light_visible_fractions(
     its ``images`` (:func:`jshadow.visibility.image_fan_visibility`, grid points chosen around the
     ray to the light's centre), a sphere occluder by an exact ray test. A receiver that sees none
     of the cap above its horizon gets F = 1 (its exact unoccluded irradiance is 0 anyway).
-    Differentiating with respect to the geometry raises :data:`LIGHT_IMAGES_NO_DERIVATIVE`.
+
+    Derivatives: with coverage images (:func:`occluder_images`) the lookups carry the silhouette
+    term of the mesh's vertices and the motion of the read points (receivers, lights, the
+    occluder's placement; :func:`jshadow.visibility.bsv_and_coverage_edgescan_diff`), i.e. the
+    derivative of the pixel-box-filtered images, sampled at the cap directions: an estimate whose
+    noise falls as the cap's directions and the receivers grow (``tests/test_image_lookup_grad.py``
+    measures it against the closed-form lens). Differentiating a sphere occluder's centre or
+    radius raises :data:`LIGHT_IMAGES_NO_DERIVATIVE` (its ray test is binary).
     """
     strata = tuple(scene.method.light_cap)
     geometry = (
         points,
         normals,
         [(light.center, light.radius) for light in scene.lights],
-        [(o.center, o.radius) for o in scene.occluders if not isinstance(o, MeshOccluder)],
+        _sphere_blockers(scene),
     )
 
     def forward(geo):
@@ -710,7 +775,14 @@ def light_visible_fractions(
             out.append(jnp.where(den > 0, jnp.sum(vis * cos, -1) / jnp.where(den > 0, den, 1.0), 1.0))
         return out
 
-    return _no_derivative_guard(forward, geometry, LIGHT_IMAGES_NO_DERIVATIVE)
+    return forward(geometry)
+
+
+def _sphere_blockers(scene: Scene) -> list[tuple[Array, Array]]:
+    """The (centre, radius) of each sphere occluder, for the exact ray tests of the image lookups'
+    path; differentiating them raises :data:`LIGHT_IMAGES_NO_DERIVATIVE` (a binary test)."""
+    spheres = [(o.center, o.radius) for o in scene.occluders if not isinstance(o, MeshOccluder)]
+    return _no_derivative_guard(lambda x: x, spheres, LIGHT_IMAGES_NO_DERIVATIVE) if spheres else spheres
 
 
 _INSIDE = 1.0 + 1e-4  # receivers within this × a mesh's bounding radius fall back to the n-band path
@@ -731,8 +803,9 @@ def environment_visible_fraction(
     occluder looked up in its ``images`` (:func:`jshadow.visibility.image_fan_visibility`, the
     grid points chosen once per fan of lights about the fan's axis), a sphere occluder by an exact
     ray test. A receiver facing none of the lights gets F = 1 (its unoccluded irradiance from them
-    is 0). Differentiable in the lights' energies; differentiating with respect to the geometry
-    raises :data:`LIGHT_IMAGES_NO_DERIVATIVE`.
+    is 0). Differentiable in the lights' energies and, with coverage images, in the geometry as
+    :func:`light_visible_fractions` is (the lights' directions are the map's: held fixed);
+    differentiating a sphere occluder raises :data:`LIGHT_IMAGES_NO_DERIVATIVE`.
 
     Returns ``(F, inside)``: ``inside`` (N,) bool marks receivers within a mesh occluder's bounding
     sphere — its own vertices with ``self_shadow`` —, whose rays the images cannot resolve (the
@@ -744,11 +817,7 @@ def environment_visible_fraction(
     replaces their own occluder's lookup, and they are not ``inside`` for it.
     """
     fan = lights.fan
-    geometry = (
-        points,
-        normals,
-        [(o.center, o.radius) for o in scene.occluders if not isinstance(o, MeshOccluder)],
-    )
+    geometry = (points, normals, _sphere_blockers(scene))
     dirs = jax.lax.stop_gradient(lights.directions)
     axes = jax.lax.stop_gradient(lights.axes)
 
@@ -780,7 +849,7 @@ def environment_visible_fraction(
             cos_all.append(jnp.maximum(nrm @ d.T, 0.0))
         return jnp.concatenate(vis_all, -1), jnp.concatenate(cos_all, -1)  # (N, K) each
 
-    vis, cos = _no_derivative_guard(forward, geometry, LIGHT_IMAGES_NO_DERIVATIVE)
+    vis, cos = forward(geometry)
     energy = lights.energy.astype(points.dtype)  # (K, 3)
     den = cos @ energy
     num = (cos * vis) @ energy
@@ -1336,15 +1405,24 @@ def image_fractions(
     return fractions, env_fraction
 
 
-def render_at(scene: Scene, t, bsvs: tuple[BSV | None, ...] | None = None, sphere_path="analytic"):
-    """Render at animation time t ∈ [0, 1] (see :func:`render`)."""
+def render_at(
+    scene: Scene,
+    t,
+    bsvs: tuple[BSV | None, ...] | None = None,
+    sphere_path="analytic",
+    images: tuple[OcclusionImages | None, ...] | None = None,
+):
+    """Render at animation time t ∈ [0, 1] (see :func:`render`). ``bsvs`` (and with them
+    ``images``, for ``light_visibility = "images"``) may be given, as :func:`scene_bsvs_and_images`
+    makes them, to share them between renderings of the same occluders; else they are made here."""
     own = own_rows_at_time(scene, t)  # first: differentiating it raises before the BSVs are traced
     if bsvs is None:
-        bsvs = scene_bsvs(scene, t, sphere_path)
+        bsvs, images = scene_bsvs_and_images(scene, t, sphere_path)
+    elif images is None:
+        images = scene_images(scene, t)
     points, normals = receivers_at_time(scene, t)
     vis, dist = occluder_visibilities(scene, bsvs, points, own, plane_first=True)
     shared = shared_normal_count(scene.receivers.normals)  # the plane's receivers lead `points`
-    images = scene_images(scene, t)
     lighting = scene_lighting(scene)
     fractions, env_fraction = image_fractions(scene, images, lighting, points, normals, own)
     e = combine(

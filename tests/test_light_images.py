@@ -6,11 +6,12 @@ but a few rays near the silhouette, and rays that miss the bounding sphere are f
 and a sphere light through the images match the closed-form lens of the analytic sphere path within
 1.5 % relative RMSE, where the n-band path is off by more than 3 %; ``render`` and the Renderer's
 one-call, split and chunked paths agree, images are made once for a rigid shape and every frame
-for a deforming one; derivatives with respect to geometry raise, with respect to radiance work,
-and the lookup's own gradient is finite at its singular points; jit with a traced time equals eager;
-config keys are read and checked;
-``jshadow render`` reports the images' time and count, ``jshadow fit`` of a light position says in
-one line that the option has no derivative; sphere occluders alone keep the exact lens.
+for a deforming one; derivatives with respect to radiance, lights and meshes work and a sphere
+occluder's refuses, and the lookup's own gradient is finite at its singular points; jit with a
+traced time equals eager; config keys are read and checked; ``jshadow render`` reports the
+images' time and count, ``jshadow fit`` of a light position runs and of a sphere occluder's
+centre says in one line that its ray test has no derivative; sphere occluders alone keep the
+exact lens.
 """
 
 import dataclasses
@@ -145,7 +146,9 @@ def test_paths_agree_and_images_are_reused():
     np.testing.assert_allclose(np.asarray(got.irradiance), want, atol=1e-5 * float(np.abs(want).max()))
 
 
-def test_derivatives_with_respect_to_geometry_raise_and_radiance_works():
+def test_derivatives_work_and_a_sphere_occluder_refuses():
+    """Radiance, light and mesh derivatives go through the images (their accuracy:
+    tests/test_image_lookup_grad.py); a sphere occluder's binary ray test refuses."""
     occ, _ = _icosphere_world(subdiv=2)
     scene = _light_scene(occ, IMAGES, n=5)
 
@@ -153,17 +156,19 @@ def test_derivatives_with_respect_to_geometry_raise_and_radiance_works():
         light = SphereLight(c, LIGHT.radius, radiance)
         return jnp.sum(render(dataclasses.replace(scene, lights=(light,))).irradiance)
 
-    g = jax.grad(with_light, argnums=1)(LIGHT.center, LIGHT.radiance)
-    assert np.all(np.isfinite(np.asarray(g))) and float(jnp.sum(g)) > 0
-    with pytest.raises(ValueError, match="light_visibility"):
-        jax.grad(with_light, argnums=0)(LIGHT.center, LIGHT.radiance)
+    g = jax.grad(with_light, argnums=(0, 1))(LIGHT.center, LIGHT.radiance)
+    assert all(np.all(np.isfinite(np.asarray(x))) for x in g) and float(jnp.sum(g[1])) > 0
+    assert float(g[0][1]) < 0  # raising the light above the plane darkens it (1/d²)
 
-    def moved(dy):
+    def moved(dy, sphere):
+        s = SphereOccluder(f32(1.5, 0.8, 1.5), jnp.float32(0.3))
+        s = dataclasses.replace(s, center=s.center + jnp.asarray([0.0, 1.0, 0.0]) * sphere)
         o = dataclasses.replace(occ, center=occ.center + jnp.asarray([0.0, 1.0, 0.0]) * dy)
-        return jnp.sum(render(dataclasses.replace(scene, occluders=(o,))).irradiance)
+        return jnp.sum(render(dataclasses.replace(scene, occluders=(o, s))).irradiance)
 
+    assert np.isfinite(float(jax.grad(moved)(jnp.float32(0.0), jnp.float32(0.0))))
     with pytest.raises(ValueError, match="light_visibility"):
-        jax.grad(moved)(jnp.float32(0.0))
+        jax.grad(moved, argnums=1)(jnp.float32(0.0), jnp.float32(0.0))
 
 
 def test_lookup_gradient_is_finite_at_singular_points():
@@ -210,7 +215,7 @@ EGG_LIGHT = (
 )
 
 
-def test_cli_render_reports_the_images_and_fit_refuses_geometry(tmp_path, capsys):
+def test_cli_render_reports_the_images_and_fit_refuses_a_sphere_occluder(tmp_path, capsys):
     from jshadow.cli import main
 
     cfg = tmp_path / "egg.toml"
@@ -224,7 +229,17 @@ def test_cli_render_reports_the_images_and_fit_refuses_geometry(tmp_path, capsys
     fit.write_text(
         EGG_LIGHT + '[fit]\nparams = ["light.0.center"]\ntarget_values = [[0.0, 3.0, 0.0]]\nsteps = 2\n'
     )
-    assert main(["fit", str(fit), "--out", str(tmp_path / "f")]) == 2
+    assert main(["fit", str(fit), "--out", str(tmp_path / "f")]) == 0  # through the images' derivative
+    report = json.loads((tmp_path / "f" / "fit.json").read_text())
+    assert np.all(np.isfinite(report["params"]["light.0.center"]))
+    capsys.readouterr()
+    sphere = tmp_path / "sphere.toml"
+    sphere.write_text(
+        EGG_LIGHT
+        + '[[occluder]]\ntype = "sphere"\ncenter = [1.0, 0.8, 1.0]\nradius = 0.3\n'
+        + '[fit]\nparams = ["occluder.1.center"]\ntarget_values = [[1.0, 0.9, 1.0]]\nsteps = 2\n'
+    )
+    assert main(["fit", str(sphere), "--out", str(tmp_path / "s")]) == 2
     err = [line for line in capsys.readouterr().err.splitlines() if "error" in line]  # not the progress bar
     assert len(err) == 1 and err[0].startswith("jshadow fit: error: ")
     assert "light_visibility = 'sh'" in err[0]

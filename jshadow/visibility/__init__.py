@@ -35,6 +35,7 @@ from ._edgescan import bsv_mesh_edgescan as bsv_mesh_edgescan
 from ._edgescan import bsv_mesh_edgescan_of as bsv_mesh_edgescan_of
 from ._edgescan import edgescan_cone_directions as edgescan_cone_directions
 from ._edgescan import edgescan_slots as edgescan_slots
+from ._edgescan_grad import bsv_and_coverage_edgescan_diff as bsv_and_coverage_edgescan_diff
 from ._edgescan_grad import bsv_mesh_edgescan_diff as bsv_mesh_edgescan_diff
 from ._edgescan_grad import edgescan_grad_slots as edgescan_grad_slots
 from ._edgescan_scan import bsv_mesh_edgescan_scan_diff as bsv_mesh_edgescan_scan_diff

@@ -100,7 +100,7 @@ from ._edgescan import (
     staged,
 )
 
-__all__ = ["bsv_mesh_edgescan_diff", "edgescan_grad_slots"]
+__all__ = ["bsv_and_coverage_edgescan_diff", "bsv_mesh_edgescan_diff", "edgescan_grad_slots"]
 
 
 _GRAD_OVERFLOW = (
@@ -721,6 +721,25 @@ def _apply(terms, corner_basis, dvertices, dpoints, *, views):
     return -(d.reshape(views, c) @ corner_basis)  # V = √(4π)e₀ − O
 
 
+def _apply_pixels(terms, dvertices, dpoints, *, views, directions, area):
+    """The linear part for the coverage images: d cov (G, N_y, N_x) from the same node terms.
+
+    The coverage of a pixel is the fraction of its area (``area`` in gnomonic units) inside Ω, so
+    its change is the boundary integral ``∮ v dl`` over the part of ∂Ω in that pixel, over the
+    area: each node's whole term (its bilinear weights summed) goes to the pixel that holds it.
+    """
+    va, vb, view, normal, corner, ca, cb = terms
+    ny, nx = directions
+    dp = dpoints[view]
+    ta = jnp.sum(normal * (dvertices[va] - dp), axis=-1)
+    tb = jnp.sum(normal * (dvertices[vb] - dp), axis=-1)
+    s = jnp.sum(ca, -1) * ta + jnp.sum(cb, -1) * tb  # (N,)
+    rest = corner[:, 0] % ((ny + 1) * (nx + 1))  # the node's lower-left corner = its pixel (i0, j0)
+    pixel = view * (ny * nx) + (rest // (nx + 1)) * nx + rest % (nx + 1)
+    d = jnp.zeros(views * ny * nx, s.dtype).at[pixel].add(s)
+    return (d / area).reshape(views, ny, nx)
+
+
 # --------------------------------------------------------------------------------------------
 # public
 # --------------------------------------------------------------------------------------------
@@ -769,6 +788,51 @@ def bsv_mesh_edgescan_diff(
     χ). The ``center`` and ``radius`` of the BSV are not returned here; take them
     from :func:`jshadow.geometry.bounding_sphere`, which is differentiable.
     """
+    return _edgescan_diff(
+        vertices, faces, n, grid, directions, shell, edge_table, slots, grad_slots, nodes, False
+    )
+
+
+def bsv_and_coverage_edgescan_diff(
+    vertices: Float[ArrayLike, "V 3"],
+    faces: Int[ArrayLike, "F 3"],
+    n: int = 4,
+    grid: tuple[int, int] = (12, 20),
+    directions: tuple[int, int] = (32, 32),
+    shell: float = 1.5,
+    *,
+    edge_table: EdgeTable | None = None,
+    slots: tuple[int, int, int, int] | None = None,
+    grad_slots: int | tuple[int, ...] | Callable[[], int | tuple[int, ...] | None] | None = None,
+    nodes: int = 2,
+) -> tuple[Float[Array, "T P n2"], Float[Array, "T P Ny Nx"]]:
+    """:func:`bsv_mesh_edgescan_diff` and the occlusion images as *coverage*, from one edge-scan.
+
+    The coverage ``cov[i, j, y, x]`` is, in value, exactly :func:`jshadow.visibility.edgescan_occlusion`'s
+    binary image as 0.0 / 1.0 (the pixel centre's ray hits the mesh). Its derivative is that of
+    the pixel's covered area fraction ``|Ω ∩ pixel| / |pixel|`` (gnomonic units), i.e. of the box
+    filter of the occluded region Ω at the pixel, whose point sample at the centre the value is:
+
+        d cov_p = (1 / |pixel|) ∫_{∂Ω ∩ pixel} v dl,
+
+    the same visible-silhouette nodes and per-node terms as the SH derivative (module docstring),
+    each node's term going to the pixel that holds it instead of being dotted with ``Y J``. Summed
+    over a view's pixels with weights ``Y_i J |pixel|`` it is the SH derivative up to the bilinear
+    table (``tests/test_image_lookup_grad.py``). One pass and one set of derivative terms serve both
+    outputs; a caller that differentiates only one pays only its final product.
+
+    Returns ``(coeffs (T, P, n²), coverage (T, P, N_y, N_x))``. Arguments, sizes and limitations as
+    :func:`bsv_mesh_edgescan_diff`; a pixel's derivative is a quadrature of its boundary (2 nodes
+    per projected edge), so per pixel it is rough and only sums over many pixels are accurate.
+    """
+    return _edgescan_diff(
+        vertices, faces, n, grid, directions, shell, edge_table, slots, grad_slots, nodes, True
+    )
+
+
+def _edgescan_diff(vertices, faces, n, grid, directions, shell, edge_table, slots, grad_slots, nodes, images):
+    """The SH coefficients (T, P, n²) with their derivative, and with ``images`` also the coverage
+    images (T, P, N_y, N_x): the body of the two public functions above."""
     if not (isinstance(n, int | np.integer) and n >= 1):
         raise ValueError(f"n (number of SH bands) must be a positive int, got {n!r}")
     if not (isinstance(nodes, int | np.integer) and not isinstance(nodes, bool) and nodes >= 1):
@@ -812,9 +876,14 @@ def bsv_mesh_edgescan_diff(
         counts = _stage_counts(diff)
         return _project_sh(counts != 0, basis_w, n), counts
 
+    def coverage(counts):
+        """The binary images (G, N_y, N_x) as 0/1 floats (row-major, as edgescan_occlusion's)."""
+        return jnp.swapaxes(counts != 0, -1, -2).astype(vertices.dtype)
+
     @jax.custom_jvp
     def bsv(x):
-        return forward(x)[0]
+        out, counts = forward(x)
+        return (out, coverage(counts)) if images else out
 
     @bsv.defjvp
     def bsv_jvp(primals, tangents):
@@ -845,7 +914,16 @@ def bsv_mesh_edgescan_diff(
         ok = eqx.error_if(jnp.ones((), out.dtype), overflow, _GRAD_OVERFLOW)
         _, dpoints = jax.jvp(lambda v: _sample_points(v, grid, shell)[0], (x0,), (dx,))
         corner_basis = _corner_basis(directions, shell, n, out.dtype)
-        dout = _apply(terms, corner_basis, dx, dpoints, views=views)
-        return out, ok * dout.astype(out.dtype)
+        dout = ok * _apply(terms, corner_basis, dx, dpoints, views=views).astype(out.dtype)
+        if not images:
+            return out, dout
+        tan_a = 1.0 / math.sqrt(shell * shell - 1.0)
+        area = (2.0 * tan_a / directions[0]) * (2.0 * tan_a / directions[1])
+        dcov = _apply_pixels(terms, dx, dpoints, views=views, directions=directions, area=area)
+        cov = coverage(counts)
+        return (out, cov), (dout, ok * dcov.astype(cov.dtype))
 
+    if images:
+        out, cov = bsv(vertices)
+        return out.reshape(*grid, n * n), cov.reshape(*grid, *directions)
     return bsv(vertices).reshape(*grid, n * n)

@@ -14,9 +14,20 @@ bilinear weights in the grid coordinates (θ, φ) of p. At a grid point p_ij the
 is the one toward ``q``, the point of the ray closest to the occluder's centre (a *focal point*):
 an occluder feature at q's depth then lies in the same place in all four images, and the parallax
 of the others grows with their distance from that depth. Each image is read at its nearest pixel.
-The result is a visibility in [0, 1] (a blend of four binary lookups), not a derivative-carrying
-function of the vertices: its gradient with respect to geometry is zero almost everywhere, which
-is not the derivative of the shadow (:mod:`jshadow.scene` refuses to differentiate it).
+The result is a visibility in [0, 1] (a blend of four binary lookups).
+
+Derivatives. With boolean images a lookup is piecewise constant in the geometry (no derivative).
+With *coverage* images — the same 0/1 values as floats, from
+:func:`jshadow.visibility.bsv_and_coverage_edgescan_diff` or any float array — each read is taken
+as a point sample of the pixel's box-filtered coverage, and differentiated as such: the pixel's
+own change (the silhouette's boundary integral over the pixel, when the vertices move) plus the
+read point's motion across the image times the image's slope there (central differences of the
+neighbouring pixels; :func:`_read`). The cut at the bounding sphere (rays whose line misses it are
+free) gets the same treatment, its jump spread over one pixel's width at the cone's edge. Summed
+over many rays (a light's cap, many receivers) this is the derivative of the shadow; per ray it is
+rough. Measured (``tests/test_image_lookup_grad.py``): a mesh sphere's gradients with respect to
+the light's centre, its own centre and radius 1.7 %, 8 % and 5 % from the closed-form lens's at
+24² receivers; a taper's 5 % from exact ray-cast differences.
 
 Accuracy (``experiments/light_field.py``, BENCHMARKS.md "Sharp sphere-light shadows"): the
 visible fraction of a sphere light from 4 × 8 cap directions looked up this way brings the mesh
@@ -32,10 +43,12 @@ which is not exact; closed meshes and shell > 1 (the edge-scan's domain); the im
 from __future__ import annotations
 
 import math
+from functools import partial
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+from jax import lax
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from .._numerics import safe_atan2, safe_div, safe_sqrt
@@ -59,13 +72,16 @@ class OcclusionImages(eqx.Module):
 
     Attributes:
         occluded: (T, P, N_y, N_x) bool, True where the ray from the shell point (θ_i, φ_j)
-            through pixel (y, x) of its gnomonic cone hits the mesh (:func:`edgescan_occlusion`).
+            through pixel (y, x) of its gnomonic cone hits the mesh (:func:`edgescan_occlusion`);
+            or the same as 0.0 / 1.0 floats carrying the coverage derivative
+            (:func:`jshadow.visibility.bsv_and_coverage_edgescan_diff`), which lookups then
+            differentiate (:func:`_read`).
         center: (3,) bounding-sphere centre c (world units).
         radius: () bounding-sphere radius r.
         shell: the shell radius over r (static; the cone's half-angle is asin(1/shell)).
     """
 
-    occluded: Bool[Array, "T P Ny Nx"]
+    occluded: Bool[Array, "T P Ny Nx"] | Float[Array, "T P Ny Nx"]
     center: Float[Array, "3"]
     radius: Float[Array, ""]
     shell: float = eqx.field(static=True)
@@ -157,6 +173,7 @@ def image_fan_visibility_components(
     origins, axis = origins.astype(dtype), axis.astype(dtype)
     t_n, p_n, ny, nx = images.occluded.shape
     flat = images.occluded.reshape(-1)
+    coverage = not jnp.issubdtype(flat.dtype, jnp.bool_)
     r = images.radius.astype(dtype)
     big_r = images.shell * r
     tan_a = math.tan(math.asin(1.0 / images.shell))
@@ -204,12 +221,59 @@ def image_fan_visibility_components(
             front = zl > 0
             x = safe_div(xl, zl)
             y = safe_div(yl, zl)
-            px = jnp.floor((x + tan_a) * (nx / (2.0 * tan_a)))
-            py = jnp.floor((y + tan_a) * (ny / (2.0 * tan_a)))
-            inside = front & (px >= 0) & (px < nx) & (py >= 0) & (py < ny)
-            pxi = jnp.clip(px, 0, nx - 1).astype(jnp.int32)
-            pyi = jnp.clip(py, 0, ny - 1).astype(jnp.int32)
+            u = (x + tan_a) * (nx / (2.0 * tan_a))  # continuous pixel coordinates
+            v = (y + tan_a) * (ny / (2.0 * tan_a))
             k = (ii * p_n + jj)[:, None]
-            hit = flat[(k * ny + pyi) * nx + pxi] & inside
+            if coverage:
+                hit = _read(flat, k, u, v, ny, nx) * front.astype(flat.dtype)
+            else:
+                hit = _gather(flat, k, jnp.floor(u), jnp.floor(v), ny, nx) & front
             vis = vis + (wi * wj)[:, None] * (1.0 - hit.astype(dtype))
-    return jnp.where(meets, vis, 1.0)
+    out = jnp.where(meets, vis, 1.0)
+    if coverage:
+        # The cut at the bounding sphere (rays whose line misses it are free) is a jump of 1 − vis
+        # where the line's distance ρ from c crosses r, which a sphere-like mesh's silhouette
+        # nearly meets. Its derivative, as the images' own: spread over the width Δρ of one pixel
+        # at the cone's edge (x = ρ/√(R² − ρ²) seen from the entry point, dx/dρ = shell²/(r
+        # (shell² − 1)^{3/2}) at ρ = r), with no change of value (φ − stop_gradient(φ) = 0).
+        rho = safe_sqrt(rr[:, None] - b * b)
+        width = r * (2.0 * (images.shell**2 - 1.0) / (nx * images.shell**2))
+        ramp = jnp.clip((r - rho) / width + 0.5, 0.0, 1.0)
+        ramp = jnp.where(b < 0, ramp - lax.stop_gradient(ramp), 0.0)
+        out = out - lax.stop_gradient(1.0 - vis) * ramp
+    return out
+
+
+def _gather(flat, k, px, py, ny: int, nx: int):
+    """``flat[k, py, px]`` of the (G·N_y·N_x,) images for integer-valued float pixel indices, the
+    image's background (False / 0) outside it."""
+    inside = (px >= 0) & (px < nx) & (py >= 0) & (py < ny)
+    pxi = jnp.clip(px, 0, nx - 1).astype(jnp.int32)
+    pyi = jnp.clip(py, 0, ny - 1).astype(jnp.int32)
+    got = flat[(k * ny + pyi) * nx + pxi]
+    return got & inside if got.dtype == jnp.bool_ else jnp.where(inside, got, 0.0)
+
+
+@partial(jax.custom_jvp, nondiff_argnums=(4, 5))
+def _read(flat, k, u, v, ny: int, nx: int):
+    """The coverage image read at its nearest pixel to the continuous pixel coordinates (u, v).
+
+    The derivative has two parts: the pixel's own (the coverage's tangent, from the silhouette
+    boundary integral of :func:`jshadow.visibility.bsv_and_coverage_edgescan_diff`) and the motion
+    of the read point over the image, ``∂cov/∂u du + ∂cov/∂v dv``, with the slope taken as the
+    central difference of the two neighbouring pixels (background outside the image). Summed
+    along a row, those slopes telescope to the image's jumps, so the read point's motion across an
+    edge of the shadow carries the whole jump, spread over the two pixels beside it.
+    """
+    return _gather(flat, k, jnp.floor(u), jnp.floor(v), ny, nx)
+
+
+@_read.defjvp
+def _read_jvp(ny, nx, primals, tangents):
+    flat, k, u, v = primals
+    dflat, _, du, dv = tangents
+    px, py = jnp.floor(u), jnp.floor(v)
+    value = _gather(flat, k, px, py, ny, nx)
+    sx = 0.5 * (_gather(flat, k, px + 1, py, ny, nx) - _gather(flat, k, px - 1, py, ny, nx))
+    sy = 0.5 * (_gather(flat, k, px, py + 1, ny, nx) - _gather(flat, k, px, py - 1, ny, nx))
+    return value, _gather(dflat, k, px, py, ny, nx) + sx * du + sy * dv
