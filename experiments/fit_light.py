@@ -8,12 +8,17 @@ enters through its SH radiance at each receiver (Zhou et al. 2005's source radia
 sphere light, evaluated in closed form) and the distance mask that decides which occluders are in
 front of it; both are smooth in the position, so no visibility-boundary term is needed here.
 
+``configs/fit_light_images.toml`` is the same scene and fit with the default method and the light
+shadowed through the occlusion images (``light_visibility = "images"``): its shadow is sharp, and the
+position's gradient then carries the motion of the shadow's edge (the images' derivative).
+
 Usage (repository root, project environment active)::
 
     python experiments/fit_light.py [--config configs/fit_light.toml] [--steps N]
 
-Writes ``experiments/results/fit_light.json`` and ``experiments/figures/fit_light.png`` (loss curve,
-the three coordinates' trajectories, before/target/after shading of the plane), prints a summary.
+Writes ``experiments/results/<config name>.json`` and ``experiments/figures/<config name>.png``
+(loss curve, the three coordinates' trajectories, before/target/after shading of the plane), prints a
+summary.
 """
 
 from __future__ import annotations
@@ -75,10 +80,11 @@ def main() -> None:
     before = plane_radiance(make_scene(x0))
     after = plane_radiance(make_scene(res.params))
     grid = target_scene.receivers.grid_shape
+    config_rel = pathlib.Path(args.config).resolve().relative_to(ROOT)
     summary = {
         "experiment": "fit_light",
-        "command": "python experiments/fit_light.py",
-        "config": str(pathlib.Path(args.config).resolve().relative_to(ROOT)),
+        "command": f"python experiments/fit_light.py --config {config_rel}",
+        "config": str(config_rel),
         "param": path,
         "init": init.tolist(),
         "target": truth.tolist(),
@@ -99,7 +105,8 @@ def main() -> None:
         "machine": f"{platform.machine()} {platform.processor() or platform.platform()}",
         "date": datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC"),
     }
-    out_json = ROOT / "experiments" / "results" / "fit_light.json"
+    stem = pathlib.Path(args.config).stem
+    out_json = ROOT / "experiments" / "results" / f"{stem}.json"
     out_json.write_text(json.dumps(summary, indent=1) + "\n")
 
     imgs = [luminance_image(x, grid) for x in (before, target, after)]
@@ -119,10 +126,10 @@ def main() -> None:
         a.imshow(im, origin="lower", extent=extent, cmap="gray", vmin=0, vmax=vmax)
         a.set(title=f"{name}: plane radiance", xlabel="x", ylabel="z")
     fig.tight_layout()
-    out_png = ROOT / "experiments" / "figures" / "fit_light.png"
+    out_png = ROOT / "experiments" / "figures" / f"{stem}.png"
     fig.savefig(out_png, dpi=70)
     print(
-        f"fit_light: {path} {np.round(init, 4).tolist()} -> {np.round(final, 4).tolist()} "
+        f"{stem}: {path} {np.round(init, 4).tolist()} -> {np.round(final, 4).tolist()} "
         f"(target {np.round(truth, 4).tolist()}; distance {dist(init):.3f} -> {dist(final):.4f}); "
         f"loss {res.loss[0]:.3e} -> {res.loss[-1]:.3e} in {steps} steps; wall {wall:.1f} s "
         f"(first step {res.first_step_s:.1f} s, {res.ms_per_step:.1f} ms/step)"

@@ -49,6 +49,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jax import lax
+from jax.custom_derivatives import SymbolicZero
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from .._numerics import safe_atan2, safe_div, safe_sqrt
@@ -268,12 +269,33 @@ def _read(flat, k, u, v, ny: int, nx: int):
     return _gather(flat, k, jnp.floor(u), jnp.floor(v), ny, nx)
 
 
-@_read.defjvp
 def _read_jvp(ny, nx, primals, tangents):
     flat, k, u, v = primals
     dflat, _, du, dv = tangents
     px, py = jnp.floor(u), jnp.floor(v)
-    value = _gather(flat, k, px, py, ny, nx)
-    sx = 0.5 * (_gather(flat, k, px + 1, py, ny, nx) - _gather(flat, k, px - 1, py, ny, nx))
-    sy = 0.5 * (_gather(flat, k, px, py + 1, ny, nx) - _gather(flat, k, px, py - 1, ny, nx))
-    return value, _gather(dflat, k, px, py, ny, nx) + sx * du + sy * dv
+    # the value and the two slopes from tables padded by one pixel (reads just outside the image
+    # still see its border), all at one index: three gathers instead of five
+    g = flat.reshape(-1, ny, nx)
+    pad = jnp.pad(g, ((0, 0), (2, 2), (2, 2)))
+    tables = (
+        pad[:, 1:-1, 1:-1],
+        0.5 * (pad[:, 1:-1, 2:] - pad[:, 1:-1, :-2]),
+        0.5 * (pad[:, 2:, 1:-1] - pad[:, :-2, 1:-1]),
+    )
+    near = (px >= -1) & (px <= nx) & (py >= -1) & (py <= ny)
+    pxi = jnp.clip(px + 1, 0, nx + 1).astype(jnp.int32)
+    pyi = jnp.clip(py + 1, 0, ny + 1).astype(jnp.int32)
+    idx = (k * (ny + 2) + pyi) * (nx + 2) + pxi
+    value, sx, sy = (jnp.where(near, t.reshape(-1)[idx], 0.0) for t in tables)
+    tangent = _zero_or(du, sx) + _zero_or(dv, sy)
+    if not isinstance(dflat, SymbolicZero):
+        tangent = tangent + _gather(dflat, k, px, py, ny, nx)
+    return value, tangent
+
+
+def _zero_or(d, slope):
+    """``slope · d``, or zeros where the tangent d is symbolically zero."""
+    return jnp.zeros_like(slope) if isinstance(d, SymbolicZero) else slope * d
+
+
+_read.defjvp(_read_jvp, symbolic_zeros=True)
