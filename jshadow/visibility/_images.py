@@ -294,8 +294,8 @@ def _read_jvp(ny, nx, primals, tangents):
 
 
 def _zero_or(d, slope):
-    """``slope · d``, or zeros where the tangent d is symbolically zero."""
-    return jnp.zeros_like(slope) if isinstance(d, SymbolicZero) else slope * d
+    """``slope · d`` in the images' dtype, or zeros where the tangent d is symbolically zero."""
+    return jnp.zeros_like(slope) if isinstance(d, SymbolicZero) else slope * d.astype(slope.dtype)
 
 
 _read.defjvp(_read_jvp, symbolic_zeros=True)
