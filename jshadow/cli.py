@@ -366,7 +366,7 @@ def cmd_fit(args) -> int:
             frame=frame,
             regularization=fit.regularization,
         )
-    except ValueError as err:  # a fitted geometric parameter through binary lookups or rays
+    except ValueError as err:  # a fitted sphere occluder under the images, or own-vertex rays
         if str(err) not in (SELF_RAYS_NO_DERIVATIVE, LIGHT_IMAGES_NO_DERIVATIVE):
             raise
         raise UsageError(f"{args.config}: {err}") from None
