@@ -8,8 +8,9 @@ invariant); a read's slope is 1/2 on the two pixels beside an edge and telescope
 through ``render`` a mesh sphere's gradients with respect to the light's centre, its own centre
 and its radius match those of the closed-form lens of the analytic sphere path; a deformation's
 gradient follows central differences of an exact ray-cast visible fraction; the lookup's
-gradients batch and are finite at its singular points; ``jshadow fit`` of a light position runs
-through the option, and a sphere occluder's centre still refuses (its ray test is binary).
+gradients batch and are finite at its singular points, and a render's with own-vertex receivers
+and a light on the occluder's axis. (``jshadow fit`` through the option, and a sphere occluder's
+refusal: tests/test_light_images.py.)
 """
 
 import dataclasses
@@ -20,10 +21,10 @@ import numpy as np
 import pytest
 from conftest import BATCH_SHAPES
 from test_light_images import IMAGES, LIGHT, _icosphere_world, _light_scene
-from test_scene import SMALL, f32, plane
+from test_scene import SMALL, f32, icosphere_occluder, plane
 
 from jshadow.entities import Environment, MeshOccluder, Scene, SphereLight, SphereOccluder
-from jshadow.geometry import Taper
+from jshadow.geometry import Taper, Twist
 from jshadow.sampling import stratified_cone_components
 from jshadow.scene import light_visible_fractions, occluder_images, render
 from jshadow.visibility import (
@@ -250,3 +251,19 @@ def test_coverage_lookup_gradient_is_finite_at_singular_points():
             jnp.asarray(o, jnp.float32), jnp.asarray(d, jnp.float32)
         )
         assert all(np.all(np.isfinite(np.asarray(x))) for x in g), (o, d)
+
+
+def test_render_gradients_are_finite_for_own_vertices_and_an_axial_light():
+    """Receivers inside the bounding sphere (the occluder's own vertices, ``self_shadow``) and a
+    light straight above the occluder's centre: finite gradients through the images."""
+    occ = icosphere_occluder((0, 1.1, 0), 0.6, Twist(jnp.float32(0.3), jnp.float32(0.3), 1), subdiv=2)
+    scene = dataclasses.replace(_light_scene(occ, IMAGES, n=6), self_shadow=True)
+
+    def loss(a, c):
+        o = dataclasses.replace(occ, deform=Twist(a, a, 1))
+        light = SphereLight(c, LIGHT.radius, LIGHT.radiance)
+        return jnp.sum(render(dataclasses.replace(scene, occluders=(o,), lights=(light,))).irradiance)
+
+    ga, gc = jax.jit(jax.grad(loss, argnums=(0, 1)))(jnp.float32(0.3), f32(0.0, 3.2, 0.0))
+    assert np.isfinite(float(ga)) and np.all(np.isfinite(np.asarray(gc)))
+    assert float(gc[1]) < 0  # raising the light darkens everything below it
