@@ -199,6 +199,8 @@ def image_fan_visibility_components(
     dx, dy, dz = (x.astype(dtype) for x in dirs)
     b = rx[:, None] * dx + ry[:, None] * dy + rz[:, None] * dz
     meets = (b * b - (rr[:, None] - r * r) > 0) & (b < 0)
+    # the focal point q = rel − b·d (the ray's point nearest c), once per ray for all grid points
+    qx, qy, qz = rx[:, None] - b * dx, ry[:, None] - b * dy, rz[:, None] - b * dz
     vis = jnp.zeros(b.shape, dtype)
     for di in (0, 1):
         ii = jnp.clip(i0 + di, 0, t_n - 1)
@@ -209,19 +211,14 @@ def image_fan_visibility_components(
             wj = fj if dj else 1.0 - fj
             sp, cp = sin_p[jj], cos_p[jj]
             # the grid point's frame (bsv_frames): x = (ct cp, ct sp, −st), y = (sp, −cp, 0), z = −u;
-            # local coordinates of q − R·u = rel − b·d − R·u, where frameᵀ u = (0, 0, −1)
-            xr = (rx * cp + ry * sp) * ct - rz * st
-            yr = rx * sp - ry * cp
-            zr = -((rx * cp + ry * sp) * st + rz * ct) + big_r
-            xd = (dx * cp[:, None] + dy * sp[:, None]) * ct[:, None] - dz * st[:, None]
-            yd = dx * sp[:, None] - dy * cp[:, None]
-            zd = -((dx * cp[:, None] + dy * sp[:, None]) * st[:, None] + dz * ct[:, None])
-            xl = xr[:, None] - b * xd
-            yl = yr[:, None] - b * yd
-            zl = zr[:, None] - b * zd
+            # local coordinates of q − R·u, where frameᵀ u = (0, 0, −1)
+            h = qx * cp[:, None] + qy * sp[:, None]
+            xl = h * ct[:, None] - qz * st[:, None]
+            yl = qx * sp[:, None] - qy * cp[:, None]
+            zl = big_r - (h * st[:, None] + qz * ct[:, None])
             front = zl > 0
-            x = safe_div(xl, zl)
-            y = safe_div(yl, zl)
+            inv = safe_div(1.0, zl)
+            x, y = xl * inv, yl * inv
             u = (x + tan_a) * (nx / (2.0 * tan_a))  # continuous pixel coordinates
             v = (y + tan_a) * (ny / (2.0 * tan_a))
             k = (ii * p_n + jj)[:, None]
