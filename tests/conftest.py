@@ -133,6 +133,7 @@ _SLOW_FIRST = (
     "test_codegen",
     "test_stress",
     "test_edgescan_grad",
+    "test_image_lookup_grad",
     "test_self_visibility",
     "test_render_grad",
     "test_determinism",
