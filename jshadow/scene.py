@@ -1415,6 +1415,10 @@ def render_at(
     """Render at animation time t ∈ [0, 1] (see :func:`render`). ``bsvs`` (and with them
     ``images``, for ``light_visibility = "images"``) may be given, as :func:`scene_bsvs_and_images`
     makes them, to share them between renderings of the same occluders; else they are made here."""
+    if bsvs is None and images is not None:
+        raise ValueError(
+            "render_at: images are given together with the bsvs they were made with (scene_bsvs_and_images)"
+        )
     own = own_rows_at_time(scene, t)  # first: differentiating it raises before the BSVs are traced
     if bsvs is None:
         bsvs, images = scene_bsvs_and_images(scene, t, sphere_path)

@@ -709,30 +709,36 @@ _slot_terms_jit = jax.jit(
 )
 
 
-def _apply(terms, corner_basis, dvertices, dpoints, *, views):
-    """The linear part: dV (G, n²) from the vertex motion (V, 3) and the viewpoint motion (G, 3)."""
-    va, vb, view, normal, corner, ca, cb = terms
+def _node_speeds(terms, dvertices, dpoints):
+    """``n₃·δq_a`` and ``n₃·δq_b`` (N,) of every node from the vertex motion (V, 3) and the
+    viewpoint motion (G, 3): what both linear parts below weight."""
+    va, vb, view, normal = terms[:4]
     dp = dpoints[view]
-    ta = jnp.sum(normal * (dvertices[va] - dp), axis=-1)  # n₃·δq_a (S,)
+    ta = jnp.sum(normal * (dvertices[va] - dp), axis=-1)
     tb = jnp.sum(normal * (dvertices[vb] - dp), axis=-1)
+    return ta, tb
+
+
+def _apply(terms, corner_basis, speeds, *, views):
+    """The linear part: dV (G, n²) from the nodes' speeds (:func:`_node_speeds`)."""
+    corner, ca, cb = terms[4:]
+    ta, tb = speeds
     s = ca * ta[:, None] + cb * tb[:, None]  # (N, 4)
     c = corner_basis.shape[0]
     d = jnp.zeros(views * c, s.dtype).at[corner.reshape(-1)].add(s.reshape(-1))
     return -(d.reshape(views, c) @ corner_basis)  # V = √(4π)e₀ − O
 
 
-def _apply_pixels(terms, dvertices, dpoints, *, views, directions, area):
-    """The linear part for the coverage images: d cov (G, N_y, N_x) from the same node terms.
+def _apply_pixels(terms, speeds, *, views, directions, area):
+    """The linear part for the coverage images: d cov (G, N_y, N_x) from the same node speeds.
 
     The coverage of a pixel is the fraction of its area (``area`` in gnomonic units) inside Ω, so
     its change is the boundary integral ``∮ v dl`` over the part of ∂Ω in that pixel, over the
     area: each node's whole term (its bilinear weights summed) goes to the pixel that holds it.
     """
-    va, vb, view, normal, corner, ca, cb = terms
+    view, corner, ca, cb = terms[2], *terms[4:]
+    ta, tb = speeds
     ny, nx = directions
-    dp = dpoints[view]
-    ta = jnp.sum(normal * (dvertices[va] - dp), axis=-1)
-    tb = jnp.sum(normal * (dvertices[vb] - dp), axis=-1)
     s = jnp.sum(ca, -1) * ta + jnp.sum(cb, -1) * tb  # (N,)
     rest = corner[:, 0] % ((ny + 1) * (nx + 1))  # the node's lower-left corner = its pixel (i0, j0)
     pixel = view * (ny * nx) + (rest // (nx + 1)) * nx + rest % (nx + 1)
@@ -818,8 +824,8 @@ def bsv_and_coverage_edgescan_diff(
     the same visible-silhouette nodes and per-node terms as the SH derivative (module docstring),
     each node's term going to the pixel that holds it instead of being dotted with ``Y J``. Summed
     over a view's pixels with weights ``Y_i J |pixel|`` it is the SH derivative up to the bilinear
-    table (``tests/test_image_lookup_grad.py``). One pass and one set of derivative terms serve both
-    outputs; a caller that differentiates only one pays only its final product.
+    table (``tests/test_image_lookup_grad.py``). One pass, one set of derivative terms and one set
+    of node speeds serve both outputs.
 
     Returns ``(coeffs (T, P, n²), coverage (T, P, N_y, N_x))``. Arguments, sizes and limitations as
     :func:`bsv_mesh_edgescan_diff`; a pixel's derivative is a quadrature of its boundary (2 nodes
@@ -914,12 +920,13 @@ def _edgescan_diff(vertices, faces, n, grid, directions, shell, edge_table, slot
         ok = eqx.error_if(jnp.ones((), out.dtype), overflow, _GRAD_OVERFLOW)
         _, dpoints = jax.jvp(lambda v: _sample_points(v, grid, shell)[0], (x0,), (dx,))
         corner_basis = _corner_basis(directions, shell, n, out.dtype)
-        dout = ok * _apply(terms, corner_basis, dx, dpoints, views=views).astype(out.dtype)
+        speeds = _node_speeds(terms, dx, dpoints)  # shared by the SH and the coverage tangents
+        dout = ok * _apply(terms, corner_basis, speeds, views=views).astype(out.dtype)
         if not images:
             return out, dout
         tan_a = 1.0 / math.sqrt(shell * shell - 1.0)
         area = (2.0 * tan_a / directions[0]) * (2.0 * tan_a / directions[1])
-        dcov = _apply_pixels(terms, dx, dpoints, views=views, directions=directions, area=area)
+        dcov = _apply_pixels(terms, speeds, views=views, directions=directions, area=area)
         cov = coverage(counts)
         return (out, cov), (dout, ok * dcov.astype(cov.dtype))
 

@@ -26,8 +26,9 @@ neighbouring pixels; :func:`_read`). The cut at the bounding sphere (rays whose 
 free) gets the same treatment, its jump spread over one pixel's width at the cone's edge. Summed
 over many rays (a light's cap, many receivers) this is the derivative of the shadow; per ray it is
 rough. Measured (``tests/test_image_lookup_grad.py``): a mesh sphere's gradients with respect to
-the light's centre, its own centre and radius 1.7 %, 8 % and 5 % from the closed-form lens's at
-24² receivers; a taper's 5 % from exact ray-cast differences.
+the light's centre, its own centre and radius 1.7 %, 8 % and 4.6 % from the closed-form lens's at
+24² receivers; a taper's 5.4 % from exact ray-cast differences (``experiments/image_grad.py``:
+0.6–19 % on the shipped deforming configs).
 
 Accuracy (``experiments/light_field.py``, BENCHMARKS.md "Sharp sphere-light shadows"): the
 visible fraction of a sphere light from 4 × 8 cap directions looked up this way brings the mesh
