@@ -35,6 +35,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from . import sh
+from ._active import over_active
 from ._numerics import safe_norm, safe_normalize, safe_sqrt
 from .entities import (
     MeshOccluder,
@@ -46,7 +47,7 @@ from .entities import (
 )
 from .envlights import EnvironmentLights, split_environment
 from .field import bsv_visibility_and_distance, sphere_light_blocked, sphere_visibility_sh, unit_visibility
-from .geometry import bounding_sphere, with_center_anchors
+from .geometry import bounding_sphere, cone_may_meet_sphere, with_center_anchors
 from .lights import (
     IrradianceMap,
     environment_irradiance,
@@ -75,6 +76,7 @@ from .visibility import (
     edgescan_scan_slots,
     edgescan_slots,
     image_fan_visibility_components,
+    image_reach,
     is_closed_manifold,
     occlusion_images,
     ray_fan_any_hit,
@@ -724,6 +726,7 @@ def light_visible_fractions(
     images: tuple[OcclusionImages | None, ...],
     points: Float[Array, "N 3"],
     normals: Float[Array, "N 3"],
+    cull: bool = True,
 ) -> list[Float[Array, " N"]]:
     """Per sphere light, the cosine-weighted visible fraction (N,) of the light at each receiver.
 
@@ -741,6 +744,12 @@ def light_visible_fractions(
     noise falls as the cap's directions and the receivers grow (``tests/test_image_lookup_grad.py``
     measures it against the closed-form lens). Differentiating a sphere occluder's centre or
     radius raises :data:`LIGHT_IMAGES_NO_DERIVATIVE` (its ray test is binary).
+
+    Work skipped: with ``cull`` (the default), a receiver whose cone toward the light misses every
+    occluder's bounding sphere (:func:`jshadow.geometry.cone_may_meet_sphere`, with the images'
+    :func:`jshadow.visibility.image_reach`) has F = 1 exactly and no derivative; the cap directions
+    and lookups run only on chunks of receivers that hold another (:func:`jshadow._active.over_active`).
+    ``cull=False`` computes every receiver (the same values and derivatives).
     """
     strata = tuple(scene.method.light_cap)
     geometry = (
@@ -756,23 +765,39 @@ def light_visible_fractions(
         blockers = [(img, None) if img is not None else (None, next(it)) for img in images]
         out = []
         for lc, lr in lights:
-            # component-wise (N, K) arrays throughout: XLA:CPU is slow on (N, K, 3) layouts
-            dx, dy, dz = stratified_cone_components(lc - pts, lr, strata)
-            axis = safe_normalize(lc - pts)
-            d_l = safe_norm(pts - lc)
-            vis = jnp.ones(dx.shape, pts.dtype)
-            dirs = jnp.stack([dx, dy, dz], -1) if len(spheres) else None  # for the sphere ray tests
+
+            def fraction(pts, nrm, lc=lc, lr=lr):
+                # component-wise (N, K) arrays throughout: XLA:CPU is slow on (N, K, 3) layouts
+                dx, dy, dz = stratified_cone_components(lc - pts, lr, strata)
+                axis = safe_normalize(lc - pts)
+                d_l = safe_norm(pts - lc)
+                vis = jnp.ones(dx.shape, pts.dtype)
+                dirs = jnp.stack([dx, dy, dz], -1) if len(spheres) else None  # the sphere ray tests
+                for img, sphere in blockers:
+                    if img is None:
+                        c, r = sphere
+                        v = 1.0 - ray_sphere_any_hit(pts[:, None, :], dirs, c, r).astype(pts.dtype)
+                    else:
+                        c = img.center
+                        v = image_fan_visibility_components(img, pts, (dx, dy, dz), axis)
+                    vis = vis * jnp.where((safe_norm(pts - c) < d_l)[:, None], v, 1.0)
+                cos = jnp.maximum(nrm[:, 0:1] * dx + nrm[:, 1:2] * dy + nrm[:, 2:3] * dz, 0.0)
+                den = jnp.sum(cos, -1)
+                return jnp.where(den > 0, jnp.sum(vis * cos, -1) / jnp.where(den > 0, den, 1.0), 1.0)
+
+            if not cull:
+                out.append(fraction(pts, nrm))
+                continue
+            # receivers whose cone toward the light misses every blocker's sphere see all of it (F = 1,
+            # no derivative): the lookups run on the others only
+            active = jnp.zeros(pts.shape[:1], bool)
             for img, sphere in blockers:
                 if img is None:
                     c, r = sphere
-                    v = 1.0 - ray_sphere_any_hit(pts[:, None, :], dirs, c, r).astype(pts.dtype)
+                    active = active | cone_may_meet_sphere(pts, lc, lr, c, r)
                 else:
-                    c = img.center
-                    v = image_fan_visibility_components(img, pts, (dx, dy, dz), axis)
-                vis = vis * jnp.where((safe_norm(pts - c) < d_l)[:, None], v, 1.0)
-            cos = jnp.maximum(nrm[:, 0:1] * dx + nrm[:, 1:2] * dy + nrm[:, 2:3] * dz, 0.0)
-            den = jnp.sum(cos, -1)
-            out.append(jnp.where(den > 0, jnp.sum(vis * cos, -1) / jnp.where(den > 0, den, 1.0), 1.0))
+                    active = active | cone_may_meet_sphere(pts, lc, lr, img.center, image_reach(img))
+            out.append(over_active(fraction, active, (pts, nrm), 1.0))
         return out
 
     return forward(geometry)

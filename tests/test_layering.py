@@ -13,6 +13,7 @@ LAYER = {
     "_numerics": 0,
     "_parallel": 0,
     "_sorting": 0,
+    "_active": 0,
     "sh": 1,
     "geometry": 1,
     "entities": 2,

@@ -16,12 +16,13 @@ input takes the sphere about c instead.
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
 from .._numerics import eps, safe_div, safe_norm, select_max, select_min
 
-__all__ = ["bounding_sphere", "normalize_to_unit_sphere", "with_center_anchors"]
+__all__ = ["bounding_sphere", "normalize_to_unit_sphere", "with_center_anchors", "cone_may_meet_sphere"]
 
 
 def bounding_sphere(
@@ -91,3 +92,37 @@ def with_center_anchors(
     h = h + eps(v.dtype) * (jnp.abs(c) + h)  # strictly beyond every vertex: no ties with the box
     offsets = jnp.eye(3, dtype=v.dtype) * h  # rows h_i e_i
     return jnp.concatenate([v, c + offsets, c - offsets], axis=0)
+
+
+_CONE_SLACK = 1e-3  # relative widening of the angular test (rounding of the angles in float32)
+
+
+def cone_may_meet_sphere(
+    points: Float[ArrayLike, "N 3"],
+    light_center: Float[ArrayLike, "3"],
+    light_radius: Float[ArrayLike, ""],
+    center: Float[ArrayLike, "3"],
+    radius: Float[ArrayLike, ""],
+) -> Array:
+    """(N,) bool: whether a ray from ``points`` toward the light sphere may meet the sphere (c, r)
+    before the light.
+
+    False only where the cone from x around the light (half-angle asin(r_L / |l − x|)) and the
+    cone around the sphere (asin(r / |c − x|)) are apart, γ > (α_L + α_S)(1 + 10⁻³), γ the angle
+    between their axes, or where the sphere's centre is not nearer than the light's (the order in
+    which the renderer multiplies an occluder in). True for a point inside either sphere. A
+    conservative, derivative-free mask (its inputs are held constant): cheap, (N,) work.
+    """
+    x = jax.lax.stop_gradient(jnp.asarray(points))
+    lc, lr, c, r = (
+        jax.lax.stop_gradient(jnp.asarray(a, x.dtype)) for a in (light_center, light_radius, center, radius)
+    )
+    to_l, to_s = lc - x, c - x
+    d_l, d_s = safe_norm(to_l), safe_norm(to_s)
+    cross = jnp.cross(to_l, to_s)
+    gamma = jnp.arctan2(safe_norm(cross), jnp.sum(to_l * to_s, -1))
+    inside = (d_l <= lr) | (d_s <= r)
+    a_l = jnp.arcsin(jnp.clip(safe_div(lr, d_l, 1.0), 0.0, 1.0))
+    a_s = jnp.arcsin(jnp.clip(safe_div(r, d_s, 1.0), 0.0, 1.0))
+    overlap = gamma <= (a_l + a_s) * (1.0 + _CONE_SLACK)
+    return (d_s < d_l) & (inside | overlap)

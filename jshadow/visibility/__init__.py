@@ -47,6 +47,7 @@ from ._images import bsv_with_occlusion_images as bsv_with_occlusion_images
 from ._images import image_fan_visibility as image_fan_visibility
 from ._images import image_fan_visibility_components as image_fan_visibility_components
 from ._images import image_ray_visibility as image_ray_visibility
+from ._images import image_reach as image_reach
 from ._images import occlusion_images as occlusion_images
 from ._own import vertex_visibility_sh as vertex_visibility_sh
 from ._raycast import ray_fan_any_hit as ray_fan_any_hit

@@ -66,6 +66,7 @@ __all__ = [
     "image_ray_visibility",
     "image_fan_visibility",
     "image_fan_visibility_components",
+    "image_reach",
 ]
 
 
@@ -119,6 +120,15 @@ def bsv_with_occlusion_images(
     (:func:`jshadow.visibility.bsv_and_occlusion_edgescan`); concrete vertices only."""
     bsv, occ = bsv_and_occlusion_edgescan(vertices, faces, n, tuple(grid), tuple(directions), shell)
     return bsv, OcclusionImages(occluded=occ, center=bsv.center, radius=bsv.radius, shell=float(shell))
+
+
+def image_reach(images: OcclusionImages) -> Float[Array, ""]:
+    """The distance from ``images.center`` beyond which a ray is free: a lookup of a ray whose
+    line passes farther from the centre is 1, with zero derivative. The bounding radius r plus the
+    width of the cut's derivative ramp (:func:`image_fan_visibility_components`; it reaches half a
+    width beyond r, twice that is kept as margin)."""
+    nx = images.occluded.shape[-1]
+    return images.radius * (1.0 + 2.0 * (images.shell**2 - 1.0) / (nx * images.shell**2))
 
 
 @jax.jit
