@@ -47,7 +47,7 @@ from .entities import (
 )
 from .envlights import EnvironmentLights, split_environment
 from .field import bsv_visibility_and_distance, sphere_light_blocked, sphere_visibility_sh, unit_visibility
-from .geometry import bounding_sphere, cone_may_meet_sphere, with_center_anchors
+from .geometry import bounding_sphere, cone_may_meet_sphere, fan_may_meet_sphere, with_center_anchors
 from .lights import (
     IrradianceMap,
     environment_irradiance,
@@ -820,6 +820,7 @@ def environment_visible_fraction(
     points: Float[Array, "N 3"],
     normals: Float[Array, "N 3"],
     own: tuple[Array, ...] | None = None,
+    cull: bool = True,
 ) -> tuple[Float[Array, "N 3"], Bool[Array, " N"]]:
     """The visible fraction (N, 3) of the environment's bright part (:mod:`jshadow.envlights`).
 
@@ -840,6 +841,11 @@ def environment_visible_fraction(
     path). With ``self_visibility = "rays"``, ``own`` (from :func:`own_rows_at_time`, or a piece
     of it) holds the own vertices' exact visibility toward the lights in its third item: it
     replaces their own occluder's lookup, and they are not ``inside`` for it.
+
+    Work skipped: with ``cull`` (the default), the lookups of a fan run only on chunks of receivers
+    that hold one from which a direction of the fan may meet a blocker's sphere
+    (:func:`jshadow.geometry.fan_may_meet_sphere`; as :func:`light_visible_fractions`; the same
+    values and derivatives as ``cull=False``).
     """
     fan = lights.fan
     geometry = (points, normals, _sphere_blockers(scene))
@@ -855,22 +861,36 @@ def environment_visible_fraction(
         vis_all, cos_all = [], []
         for g in range(axes.shape[0]):
             d = dirs[g * fan : (g + 1) * fan].astype(pts.dtype)  # (fan, 3)
-            comps = tuple(d[None, :, c] for c in range(3))  # (1, fan) each: shared by all receivers
-            axis = jnp.broadcast_to(axes[g].astype(pts.dtype), pts.shape)
-            vis = jnp.ones((pts.shape[0], fan), pts.dtype)
-            for i, (img, sphere) in enumerate(blockers):
-                if img is None:
-                    c, r = sphere
-                    hit = ray_sphere_any_hit(pts[:, None, :], d[None], c, r)
-                    vis = vis * (1.0 - hit.astype(pts.dtype))
-                    continue
-                v = image_fan_visibility_components(img, pts, comps, axis)
-                if owners is not None:  # own vertices: their exact rays instead of the lookup
-                    v = jnp.where(
-                        (owners == i)[:, None], own_vis[:, g * fan : (g + 1) * fan].astype(v.dtype), v
-                    )
-                vis = vis * v
-            vis_all.append(vis)
+            ax = axes[g].astype(pts.dtype)
+
+            def fan_visibility(pts, *own_rows, d=d, ax=ax):
+                comps = tuple(d[None, :, c] for c in range(3))  # (1, fan) each: shared by all receivers
+                axis = jnp.broadcast_to(ax, pts.shape)
+                vis = jnp.ones((pts.shape[0], fan), pts.dtype)
+                for i, (img, sphere) in enumerate(blockers):
+                    if img is None:
+                        c, r = sphere
+                        hit = ray_sphere_any_hit(pts[:, None, :], d[None], c, r)
+                        vis = vis * (1.0 - hit.astype(pts.dtype))
+                        continue
+                    v = image_fan_visibility_components(img, pts, comps, axis)
+                    if own_rows:  # own vertices: their exact rays instead of the lookup
+                        own_owner, own_fan = own_rows
+                        v = jnp.where((own_owner == i)[:, None], own_fan.astype(v.dtype), v)
+                    vis = vis * v
+                return vis
+
+            rows = (pts,) if owners is None else (pts, owners, own_vis[:, g * fan : (g + 1) * fan])
+            if not cull:
+                vis_all.append(fan_visibility(*rows))
+            else:
+                # receivers from which no direction of the fan meets a blocker's sphere see the whole fan
+                half = jnp.arccos(jnp.clip(jnp.min(d @ ax), -1.0, 1.0))
+                active = jnp.zeros(pts.shape[:1], bool)
+                for img, sphere in blockers:
+                    c, r = sphere if img is None else (img.center, image_reach(img))
+                    active = active | fan_may_meet_sphere(pts, ax, half, c, r)
+                vis_all.append(over_active(fan_visibility, active, rows, 1.0))
             cos_all.append(jnp.maximum(nrm @ d.T, 0.0))
         return jnp.concatenate(vis_all, -1), jnp.concatenate(cos_all, -1)  # (N, K) each
 

@@ -7,8 +7,9 @@ its values and derivatives (grad and jvp) are those of the full evaluation, and 
 the chunks holding active rows only; ``cone_may_meet_sphere`` is conservative against rays cast
 densely over the light's cap (never False where a ray meets the sphere before the light), True
 inside either sphere, and skips most receivers far from the shadow; ``light_visible_fractions``
-gives the same values and light, vertex and receiver derivatives with and without the skipping, on
-a plane large enough for several chunks.
+and ``environment_visible_fraction`` (with own vertices' exact rays) give the same values and
+derivatives with and without the skipping, on planes large enough for several chunks;
+``fan_may_meet_sphere`` is conservative against the fan's directions.
 """
 
 import dataclasses
@@ -20,10 +21,17 @@ import pytest
 from test_light_images import IMAGES, LIGHT, _icosphere_world, _light_scene
 
 from jshadow._active import chunk_count, over_active
-from jshadow.entities import SphereLight
-from jshadow.geometry import cone_may_meet_sphere
+from jshadow.entities import SphereLight, receivers_at_time
+from jshadow.geometry import cone_may_meet_sphere, fan_may_meet_sphere
 from jshadow.sampling import stratified_sphere_cone
-from jshadow.scene import light_visible_fractions, occluder_images
+from jshadow.scene import (
+    environment_visible_fraction,
+    light_visible_fractions,
+    occluder_images,
+    own_rows_at_time,
+    scene_images,
+    scene_lighting,
+)
 
 
 def _fn(x, y):
@@ -120,6 +128,28 @@ def test_cone_test_is_conservative_against_dense_rays(rng):
     assert inside[0]
 
 
+def test_fan_test_is_conservative_against_its_directions(rng):
+    n = 3000
+    pts = rng.uniform(-4, 4, size=(n, 3))
+    axis = np.array([0.3, 0.9, -0.3])
+    axis /= np.linalg.norm(axis)
+    half = 0.25
+    c, r = np.array([0.2, 1.2, 0.3]), 0.5
+    mask = np.asarray(fan_may_meet_sphere(pts, axis, half, c, r))
+    # directions filling the cone about the axis (its rim included)
+    d = np.asarray(stratified_sphere_cone(jnp.asarray(axis * 10.0), 10.0 * np.sin(half), (16, 48)))
+    rim = np.cos(half) * axis + np.sin(half) * np.cross(axis, [1.0, 0.0, 0.0]) / np.linalg.norm(
+        np.cross(axis, [1.0, 0.0, 0.0])
+    )
+    d = np.concatenate([d, rim[None]], 0)
+    rel = pts - c
+    b = rel @ d.T
+    meets = (b * b - (np.sum(rel * rel, -1)[:, None] - r * r) > 0) & (b < 0)
+    needed = meets.any(-1) | (np.linalg.norm(pts - c, axis=-1) <= r)
+    assert not np.any(needed & ~mask)
+    assert np.mean(mask[~needed]) < 0.2
+
+
 def test_cone_test_has_no_derivative_and_no_nan():
     def f(p):
         return jnp.sum(cone_may_meet_sphere(p, jnp.zeros(3), 0.5, jnp.zeros(3), 0.5).astype(jnp.float32))
@@ -155,3 +185,42 @@ def test_light_fractions_with_and_without_skipping_agree():
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), atol=1e-4 * scale)
     mask = cone_may_meet_sphere(pts, LIGHT.center, LIGHT.radius, occ.center, occ.radius)
     assert float(jnp.mean(mask)) < 0.5  # the test scene skips most of its receivers
+
+
+def test_environment_fractions_with_and_without_skipping_agree():
+    """The sun map's lamps over a 48² plane and the mesh's own vertices (exact rays for them): the
+    same fractions and receiver derivatives either way, and most of the receivers skipped for at
+    least one fan."""
+    from test_environment_lights import SPLIT, _sun_scene
+
+    method = dataclasses.replace(SPLIT, self_visibility="rays", environment_lights=32)
+    scene = _sun_scene(method, n=48, self_shadow=True)
+    images, lights = scene_images(scene, 0.0), scene_lighting(scene).env_lights
+    own = own_rows_at_time(scene, 0.0)
+    pts, nrm = receivers_at_time(scene, 0.0)
+    w = jnp.asarray(np.random.default_rng(2).uniform(0.5, 1.5, (pts.shape[0], 3)), jnp.float32)
+
+    def loss(shift, cull):
+        f, _ = environment_visible_fraction(scene, images, lights, pts + shift, nrm, own, cull=cull)
+        return jnp.sum(w * f)
+
+    shift = jnp.zeros(3, jnp.float32)
+    v1, g1 = jax.value_and_grad(loss)(shift, True)
+    v0, g0 = jax.value_and_grad(loss)(shift, False)
+    assert float(v0) < float(jnp.sum(w)) - 1.0  # there is a shadow
+    np.testing.assert_allclose(float(v1), float(v0), rtol=1e-6)
+    assert float(jnp.max(jnp.abs(g0))) > 0
+    np.testing.assert_allclose(
+        np.asarray(g1), np.asarray(g0), rtol=1e-4, atol=1e-4 * float(jnp.max(jnp.abs(g0)))
+    )
+    f1, inside1 = environment_visible_fraction(scene, images, lights, pts, nrm, own)
+    f0, inside0 = environment_visible_fraction(scene, images, lights, pts, nrm, own, cull=False)
+    np.testing.assert_allclose(np.asarray(f1), np.asarray(f0), atol=1e-6)
+    np.testing.assert_array_equal(np.asarray(inside1), np.asarray(inside0))
+    fan, occ = lights.fan, scene.occluders[0]
+    skipped = []
+    for g in range(lights.axes.shape[0]):
+        d, ax = lights.directions[g * fan : (g + 1) * fan], lights.axes[g]
+        half = jnp.arccos(jnp.clip(jnp.min(d @ ax), -1.0, 1.0))
+        skipped.append(1.0 - float(jnp.mean(fan_may_meet_sphere(pts, ax, half, occ.center, occ.radius))))
+    assert max(skipped) > 0.5, skipped

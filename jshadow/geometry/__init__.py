@@ -7,6 +7,7 @@ sphere at the origin; deformations act in that normalised frame.
 
 from ._bounds import bounding_sphere as bounding_sphere
 from ._bounds import cone_may_meet_sphere as cone_may_meet_sphere
+from ._bounds import fan_may_meet_sphere as fan_may_meet_sphere
 from ._bounds import normalize_to_unit_sphere as normalize_to_unit_sphere
 from ._bounds import with_center_anchors as with_center_anchors
 from ._deform import DEFORMATION_TYPES as DEFORMATION_TYPES

@@ -22,7 +22,13 @@ from jaxtyping import Array, ArrayLike, Float
 
 from .._numerics import eps, safe_div, safe_norm, select_max, select_min
 
-__all__ = ["bounding_sphere", "normalize_to_unit_sphere", "with_center_anchors", "cone_may_meet_sphere"]
+__all__ = [
+    "bounding_sphere",
+    "normalize_to_unit_sphere",
+    "with_center_anchors",
+    "cone_may_meet_sphere",
+    "fan_may_meet_sphere",
+]
 
 
 def bounding_sphere(
@@ -114,15 +120,37 @@ def cone_may_meet_sphere(
     conservative, derivative-free mask (its inputs are held constant): cheap, (N,) work.
     """
     x = jax.lax.stop_gradient(jnp.asarray(points))
-    lc, lr, c, r = (
-        jax.lax.stop_gradient(jnp.asarray(a, x.dtype)) for a in (light_center, light_radius, center, radius)
-    )
-    to_l, to_s = lc - x, c - x
-    d_l, d_s = safe_norm(to_l), safe_norm(to_s)
-    cross = jnp.cross(to_l, to_s)
-    gamma = jnp.arctan2(safe_norm(cross), jnp.sum(to_l * to_s, -1))
-    inside = (d_l <= lr) | (d_s <= r)
+    lc, lr = (jax.lax.stop_gradient(jnp.asarray(a, x.dtype)) for a in (light_center, light_radius))
+    to_l = lc - x
+    d_l = safe_norm(to_l)
     a_l = jnp.arcsin(jnp.clip(safe_div(lr, d_l, 1.0), 0.0, 1.0))
+    near, reach, d_s = _sphere_cone(x, to_l, a_l, center, radius)
+    return (d_s < d_l) & ((d_l <= lr) | near | reach)
+
+
+def fan_may_meet_sphere(
+    points: Float[ArrayLike, "N 3"],
+    axis: Float[ArrayLike, "3"],
+    half_angle: Float[ArrayLike, ""],
+    center: Float[ArrayLike, "3"],
+    radius: Float[ArrayLike, ""],
+) -> Array:
+    """(N,) bool: whether a ray from ``points`` in a direction within ``half_angle`` (radians) of
+    the unit ``axis`` (distant lights) may meet the sphere (c, r): False only where that cone and
+    the cone from x around the sphere are apart, as :func:`cone_may_meet_sphere`; True inside the
+    sphere. Derivative-free (its inputs are held constant)."""
+    x = jax.lax.stop_gradient(jnp.asarray(points))
+    ax, half = (jax.lax.stop_gradient(jnp.asarray(a, x.dtype)) for a in (axis, half_angle))
+    near, reach, _ = _sphere_cone(x, jnp.broadcast_to(ax, x.shape), half, center, radius)
+    return near | reach
+
+
+def _sphere_cone(x, to_l, a_l, center, radius):
+    """(inside the sphere, the cones about ``to_l`` (half-angle a_l) and about the sphere overlap,
+    distance to the sphere's centre), each (N,)."""
+    c, r = (jax.lax.stop_gradient(jnp.asarray(a, x.dtype)) for a in (center, radius))
+    to_s = c - x
+    d_s = safe_norm(to_s)
+    gamma = jnp.arctan2(safe_norm(jnp.cross(to_l, to_s)), jnp.sum(to_l * to_s, -1))
     a_s = jnp.arcsin(jnp.clip(safe_div(r, d_s, 1.0), 0.0, 1.0))
-    overlap = gamma <= (a_l + a_s) * (1.0 + _CONE_SLACK)
-    return (d_s < d_l) & (inside | overlap)
+    return d_s <= r, gamma <= (a_l + a_s) * (1.0 + _CONE_SLACK), d_s
