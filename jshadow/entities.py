@@ -113,8 +113,11 @@ class Method:
     the BSV's occlusion images (:func:`jshadow.visibility.image_ray_visibility`; sphere occluders
     by an exact ray test), times the light's exact unoccluded irradiance. Sharp where n-band SH
     blur: 0.5–1.0 % relative RMSE on the mesh scenes with sphere lights against 2.5–9 % (BENCHMARKS.md
-    "Sharp sphere-light shadows"), at the cost of the images (a second edge-scan per BSV) and the
-    lookups. It needs the edge-scan (shell > 1, closed meshes). Differentiable through the
+    "Sharp sphere-light shadows"), at the cost of the images (from the BSV's own edge-scan pass)
+    and the lookups (run only for receivers whose cone toward the light may meet an occluder's
+    bounding sphere: 2.2–3.0× the default's frame on the deforming configs, 6.3× on the static
+    spot_sunset, BENCHMARKS.md "Skipping the receivers that cannot be shadowed"). It needs the
+    edge-scan (shell > 1, closed meshes). Differentiable through the
     coverage images (:func:`jshadow.scene.occluder_images`): the lookups carry the silhouette term
     of the mesh's vertices and the read points' motion (lights, receivers), an estimate within
     0.6–19 % of exact ray-cast differences on the shipped deforming configs (BENCHMARKS.md

@@ -844,8 +844,10 @@ def environment_visible_fraction(
 
     Work skipped: with ``cull`` (the default), the lookups of a fan run only on chunks of receivers
     that hold one from which a direction of the fan may meet a blocker's sphere
-    (:func:`jshadow.geometry.fan_may_meet_sphere`; as :func:`light_visible_fractions`; the same
-    values and derivatives as ``cull=False``).
+    (:func:`jshadow.geometry.fan_may_meet_sphere`; as :func:`light_visible_fractions`) and that is
+    not ``inside``; elsewhere the fraction is 1 (at ``inside`` receivers, whose fraction
+    :func:`combine` does not use, ``cull=False`` gives the lookups' value instead; the other
+    receivers' values and derivatives are the same either way).
     """
     fan = lights.fan
     geometry = (points, normals, _sphere_blockers(scene))
@@ -854,7 +856,7 @@ def environment_visible_fraction(
 
     owners, own_vis = (own[1], own[2]) if own is not None and len(own) > 2 else (None, None)
 
-    def forward(geo):
+    def forward(geo, inside):
         pts, nrm, spheres = geo
         it = iter(spheres)
         blockers = [(img, None) if img is not None else (None, next(it)) for img in images]
@@ -890,22 +892,23 @@ def environment_visible_fraction(
                 for img, sphere in blockers:
                     c, r = sphere if img is None else (img.center, image_reach(img))
                     active = active | fan_may_meet_sphere(pts, ax, half, c, r)
-                vis_all.append(over_active(fan_visibility, active, rows, 1.0))
+                # nor for those inside a mesh's bounding sphere: combine shades them by the n-band path
+                vis_all.append(over_active(fan_visibility, active & ~inside, rows, 1.0))
             cos_all.append(jnp.maximum(nrm @ d.T, 0.0))
         return jnp.concatenate(vis_all, -1), jnp.concatenate(cos_all, -1)  # (N, K) each
 
-    vis, cos = forward(geometry)
-    energy = lights.energy.astype(points.dtype)  # (K, 3)
-    den = cos @ energy
-    num = (cos * vis) @ energy
-    ok = den > 0
-    fraction = jnp.where(ok, num / jnp.where(ok, den, 1.0), 1.0)
     inside = jnp.zeros(points.shape[:1], bool)
     for i, img in enumerate(images):
         if img is not None:
             c, r = jax.lax.stop_gradient((img.center, img.radius))
             near = jnp.sum((jax.lax.stop_gradient(points) - c) ** 2, -1) < (r * _INSIDE) ** 2
             inside = inside | (near if owners is None else near & (owners != i))
+    vis, cos = forward(geometry, inside)
+    energy = lights.energy.astype(points.dtype)  # (K, 3)
+    den = cos @ energy
+    num = (cos * vis) @ energy
+    ok = den > 0
+    fraction = jnp.where(ok, num / jnp.where(ok, den, 1.0), 1.0)
     return fraction, inside
 
 

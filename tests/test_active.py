@@ -188,35 +188,40 @@ def test_light_fractions_with_and_without_skipping_agree():
 
 
 def test_environment_fractions_with_and_without_skipping_agree():
-    """The sun map's lamps over a 48² plane and the mesh's own vertices (exact rays for them): the
-    same fractions and receiver derivatives either way, and most of the receivers skipped for at
-    least one fan."""
+    """The sun map's 32 lamps (4 fans) over a 48² plane and the mesh's own vertices: with exact rays
+    for the own vertices, the same fractions and receiver derivatives either way; without them the
+    own vertices are ``inside`` (shaded by the n-band path) and not looked up (fraction 1), the rest
+    the same. Most of the receivers are skipped for at least one fan."""
     from test_environment_lights import SPLIT, _sun_scene
 
-    method = dataclasses.replace(SPLIT, self_visibility="rays", environment_lights=32)
-    scene = _sun_scene(method, n=48, self_shadow=True)
-    images, lights = scene_images(scene, 0.0), scene_lighting(scene).env_lights
-    own = own_rows_at_time(scene, 0.0)
-    pts, nrm = receivers_at_time(scene, 0.0)
-    w = jnp.asarray(np.random.default_rng(2).uniform(0.5, 1.5, (pts.shape[0], 3)), jnp.float32)
+    for rays in (True, False):
+        method = dataclasses.replace(SPLIT, environment_lights=32)
+        if rays:
+            method = dataclasses.replace(method, self_visibility="rays")
+        scene = _sun_scene(method, n=48, self_shadow=True)
+        images, lights = scene_images(scene, 0.0), scene_lighting(scene).env_lights
+        own = own_rows_at_time(scene, 0.0)
+        pts, nrm = receivers_at_time(scene, 0.0)
+        _, inside = environment_visible_fraction(scene, images, lights, pts, nrm, own, cull=False)
+        out = ~np.asarray(inside)
+        assert np.all(out) if rays else np.sum(~out) == pts.shape[0] - 48 * 48
+        rng = np.random.default_rng(2)
+        w = jnp.asarray(rng.uniform(0.5, 1.5, (pts.shape[0], 3)) * out[:, None], jnp.float32)
 
-    def loss(shift, cull):
-        f, _ = environment_visible_fraction(scene, images, lights, pts + shift, nrm, own, cull=cull)
-        return jnp.sum(w * f)
+        def loss(shift, cull, own=own, pts=pts, nrm=nrm, w=w, scene=scene, images=images, lights=lights):
+            f, _ = environment_visible_fraction(scene, images, lights, pts + shift, nrm, own, cull=cull)
+            return jnp.sum(w * f), f
 
-    shift = jnp.zeros(3, jnp.float32)
-    v1, g1 = jax.value_and_grad(loss)(shift, True)
-    v0, g0 = jax.value_and_grad(loss)(shift, False)
-    assert float(v0) < float(jnp.sum(w)) - 1.0  # there is a shadow
-    np.testing.assert_allclose(float(v1), float(v0), rtol=1e-6)
-    assert float(jnp.max(jnp.abs(g0))) > 0
-    np.testing.assert_allclose(
-        np.asarray(g1), np.asarray(g0), rtol=1e-4, atol=1e-4 * float(jnp.max(jnp.abs(g0)))
-    )
-    f1, inside1 = environment_visible_fraction(scene, images, lights, pts, nrm, own)
-    f0, inside0 = environment_visible_fraction(scene, images, lights, pts, nrm, own, cull=False)
-    np.testing.assert_allclose(np.asarray(f1), np.asarray(f0), atol=1e-6)
-    np.testing.assert_array_equal(np.asarray(inside1), np.asarray(inside0))
+        shift = jnp.zeros(3, jnp.float32)
+        (v1, f1), g1 = jax.value_and_grad(loss, has_aux=True)(shift, True)
+        (v0, f0), g0 = jax.value_and_grad(loss, has_aux=True)(shift, False)
+        assert float(v0) < float(jnp.sum(w)) - 1.0  # there is a shadow
+        np.testing.assert_allclose(float(v1), float(v0), rtol=1e-6)
+        scale = float(jnp.max(jnp.abs(g0)))
+        assert scale > 0
+        np.testing.assert_allclose(np.asarray(g1), np.asarray(g0), rtol=1e-4, atol=1e-4 * scale)
+        np.testing.assert_allclose(np.asarray(f1)[out], np.asarray(f0)[out], atol=1e-6)
+        np.testing.assert_array_equal(np.asarray(f1)[~out], 1.0)
     fan, occ = lights.fan, scene.occluders[0]
     skipped = []
     for g in range(lights.axes.shape[0]):
