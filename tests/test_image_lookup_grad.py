@@ -9,7 +9,9 @@ through ``render`` a mesh sphere's gradients with respect to the light's centre,
 and its radius match those of the closed-form lens of the analytic sphere path; a deformation's
 gradient follows central differences of an exact ray-cast visible fraction; the lookup's
 gradients batch and are finite at its singular points, and a render's with own-vertex receivers
-and a light on the occluder's axis. (``jshadow fit`` through the option, and a sphere occluder's
+and a light on the occluder's axis; the lookups' written-out tangent equals JAX's derivative of the
+same lookups read through ``_read`` for every input, alone and together, forward and reverse,
+with per-origin and shared ray fans. (``jshadow fit`` through the option, and a sphere occluder's
 refusal: tests/test_light_images.py.)
 """
 
@@ -36,7 +38,7 @@ from jshadow.visibility import (
     ray_fan_any_hit,
 )
 from jshadow.visibility._edgescan import _basis_weights, edgescan_occlusion
-from jshadow.visibility._images import _read
+from jshadow.visibility._images import _coverage_lookup, _fan_lookup, _read
 
 GRID, DIRS, SHELL = (6, 8), (32, 32), 1.5
 
@@ -276,3 +278,60 @@ def test_render_gradients_are_finite_for_own_vertices_and_an_axial_light():
     ga, gc = jax.jit(jax.grad(loss, argnums=(0, 1)))(jnp.float32(0.3), f32(0.0, 3.2, 0.0))
     assert np.isfinite(float(ga)) and np.all(np.isfinite(np.asarray(gc)))
     assert float(gc[1]) < 0  # raising the light darkens everything below it
+
+
+def _lookup_case(rng, shared_dirs):
+    """An ellipsoid's coverage images (float64) and 300 origins below it with fans of 6 rays toward
+    it: the arguments of :func:`_fan_lookup` after ``shell``. ``shared_dirs``: one (1, 6) fan shared
+    by every origin, as the environment lights' lookups pass it."""
+    import trimesh
+
+    m = trimesh.creation.icosphere(subdivisions=2)
+    v = jnp.asarray(m.vertices * [0.6, 0.4, 0.5] + [0.0, 1.1, 0.0], jnp.float64)
+    img = occlusion_images(v, jnp.asarray(m.faces, jnp.int32), (6, 8), (8, 8), 1.5)
+    o = jnp.asarray(rng.normal(size=(300, 3)) * 0.4 + [0.0, -1.0, 0.0])
+    d = jnp.asarray([0.0, 1.0, 0.0]) + jnp.asarray(rng.normal(size=(1 if shared_dirs else 300, 6, 3)) * 0.25)
+    d = d / jnp.linalg.norm(d, axis=-1, keepdims=True)
+    axis = jnp.broadcast_to(d[:, 0], o.shape)
+    cov = img.occluded.astype(jnp.float64)
+    return (cov, img.center, img.radius, o, d[..., 0], d[..., 1], d[..., 2], axis)
+
+
+@pytest.mark.usefixtures("x64")
+@pytest.mark.parametrize("shared_dirs", [False, True])
+def test_written_out_tangent_is_the_reference_derivative(shared_dirs, rng):
+    """The coverage lookups' tangent, written out (:func:`_coverage_lookup`), against JAX's own
+    derivative of the same lookups read through :func:`_read` (``reference=True``): equal to
+    rounding along every input alone (a tangent of only the centre, only the radius, ... — the
+    symbolic zeros of the others), along all together, and in reverse mode for every input."""
+    args = _lookup_case(rng, shared_dirs)
+
+    def ours(*a):
+        return _coverage_lookup(1.5, *a)
+
+    def reference(*a):
+        return _fan_lookup(1.5, *a, reference=True)[0]
+
+    tangents = [jnp.asarray(rng.normal(size=np.shape(a))) for a in args]
+    for i in range(len(args)):  # one input at a time: the others' tangents are symbolic zeros
+        others = tuple(x for j, x in enumerate(args) if j != i)
+
+        def along(fn, i=i, others=others):
+            return lambda value: fn(*others[:i], value, *others[i:])
+
+        v1, t1 = jax.jvp(along(ours), (args[i],), (tangents[i],))
+        v0, t0 = jax.jvp(along(reference), (args[i],), (tangents[i],))
+        np.testing.assert_array_equal(np.asarray(v1), np.asarray(v0))
+        scale = float(jnp.max(jnp.abs(t0)))
+        assert scale > 0, i
+        np.testing.assert_allclose(np.asarray(t1), np.asarray(t0), atol=1e-12 * scale, err_msg=str(i))
+    _, t1 = jax.jvp(ours, args, tuple(tangents))
+    _, t0 = jax.jvp(reference, args, tuple(tangents))
+    np.testing.assert_allclose(np.asarray(t1), np.asarray(t0), atol=1e-12 * float(jnp.max(jnp.abs(t0))))
+    w = jnp.asarray(rng.normal(size=t0.shape))
+    argnums = tuple(range(len(args)))
+    g1 = jax.grad(lambda *a: jnp.sum(w * ours(*a)), argnums)(*args)
+    g0 = jax.grad(lambda *a: jnp.sum(w * reference(*a)), argnums)(*args)
+    for a, b, arg in zip(g1, g0, args, strict=True):
+        assert a.shape == arg.shape
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), atol=1e-12 * float(jnp.max(jnp.abs(b))))
