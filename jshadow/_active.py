@@ -27,7 +27,9 @@ from jaxtyping import Array, Bool, Shaped
 
 __all__ = ["over_active", "chunk_count"]
 
-_MIN_CHUNK = 512  # rows; smaller chunks cost more in the map's per-step overhead than they skip
+# rows; a floor for small receiver sets, not measured (on 16384 receivers, 16 chunks of 1024 were
+# as fast as 32 or 64 smaller ones and faster than 8: BENCHMARKS.md, "Skipping the receivers...")
+_MIN_CHUNK = 512
 
 
 def chunk_count(n: int, chunks: int = 16, min_chunk: int = _MIN_CHUNK) -> int:
@@ -82,7 +84,11 @@ def over_active(
 
 
 def _full(fn, fill, active, rows, consts):
-    out = fn(*rows, *consts)
+    return _masked(fn(*rows, *consts), active, fill)
+
+
+def _masked(out, active, fill):
+    """``out`` (N, ...) with ``fill`` on the inactive rows."""
     return jnp.where(active.reshape((-1,) + (1,) * (out.ndim - 1)), out, jnp.asarray(fill, out.dtype))
 
 
@@ -112,8 +118,7 @@ def _over_active(fns, chunks: int, fill: float, active, rows, consts):
         )
 
     out = lax.map(step, (jnp.arange(chunks, dtype=jnp.int32), blocks))
-    out = out.reshape((chunks * size,) + out.shape[2:])[pos]
-    return jnp.where(active.reshape((n,) + (1,) * (out.ndim - 1)), out, jnp.asarray(fill, out.dtype))
+    return _masked(out.reshape((chunks * size,) + out.shape[2:])[pos], active, fill)
 
 
 def _over_active_jvp(fns, chunks, fill, primals, tangents):

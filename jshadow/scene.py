@@ -791,16 +791,18 @@ def light_visible_fractions(
             # receivers whose cone toward the light misses every blocker's sphere see all of it (F = 1,
             # no derivative): the lookups run on the others only
             active = jnp.zeros(pts.shape[:1], bool)
-            for img, sphere in blockers:
-                if img is None:
-                    c, r = sphere
-                    active = active | cone_may_meet_sphere(pts, lc, lr, c, r)
-                else:
-                    active = active | cone_may_meet_sphere(pts, lc, lr, img.center, image_reach(img))
+            for c, r in _reach_spheres(blockers):
+                active = active | cone_may_meet_sphere(pts, lc, lr, c, r)
             out.append(over_active(fraction, active, (pts, nrm), 1.0))
         return out
 
     return forward(geometry)
+
+
+def _reach_spheres(blockers) -> list[tuple[Array, Array]]:
+    """(centre, radius) per blocker beyond which its rays are free: a sphere occluder itself, a
+    mesh's bounding sphere widened by its images' derivative ramp (:func:`image_reach`)."""
+    return [sphere if img is None else (img.center, image_reach(img)) for img, sphere in blockers]
 
 
 def _sphere_blockers(scene: Scene) -> list[tuple[Array, Array]]:
@@ -889,8 +891,7 @@ def environment_visible_fraction(
                 # receivers from which no direction of the fan meets a blocker's sphere see the whole fan
                 half = jnp.arccos(jnp.clip(jnp.min(d @ ax), -1.0, 1.0))
                 active = jnp.zeros(pts.shape[:1], bool)
-                for img, sphere in blockers:
-                    c, r = sphere if img is None else (img.center, image_reach(img))
+                for c, r in _reach_spheres(blockers):
                     active = active | fan_may_meet_sphere(pts, ax, half, c, r)
                 # nor for those inside a mesh's bounding sphere: combine shades them by the n-band path
                 vis_all.append(over_active(fan_visibility, active & ~inside, rows, 1.0))

@@ -24,10 +24,10 @@ own change (the silhouette's boundary integral over the pixel, when the vertices
 read point's motion across the image times the image's slope there (central differences of the
 neighbouring pixels; :func:`_read`). The cut at the bounding sphere (rays whose line misses it are
 free) gets the same treatment, its jump spread over one pixel's width at the cone's edge. The
-tangent of all of it is written out (:func:`_fan_lookup`, formed in a branch of its own:
-:func:`_coverage_lookup`); it equals JAX's derivative of the same lookups read through
-:func:`_read` and is formed 2.6× faster (the coverage's gradient on the egg's 16384 receivers × 32
-rays: 15.3 against 39.2 ms). Summed
+tangent of all of it is written out (:func:`_fan_lookup`; :func:`_coverage_lookup` forms it in a
+branch of its own where only the images, centre or radius move); it equals JAX's derivative of
+the same lookups read through :func:`_read` and is formed 2.6× faster (the coverage's gradient on
+the egg's 16384 receivers × 32 rays: 15.3 against 39.2 ms). Summed
 over many rays (a light's cap, many receivers) this is the derivative of the shadow; per ray it is
 rough. Measured (``tests/test_image_lookup_grad.py``): a mesh sphere's gradients with respect to
 the light's centre, its own centre and radius 1.7 %, 8 % and 4.6 % from the closed-form lens's at
@@ -131,8 +131,13 @@ def image_reach(images: OcclusionImages) -> Float[Array, ""]:
     line passes farther from the centre is 1, with zero derivative. The bounding radius r plus the
     width of the cut's derivative ramp (:func:`image_fan_visibility_components`; it reaches half a
     width beyond r, twice that is kept as margin)."""
-    nx = images.occluded.shape[-1]
-    return images.radius * (1.0 + 2.0 * (images.shell**2 - 1.0) / (nx * images.shell**2))
+    return images.radius * (1.0 + 2.0 * _ramp_width(images.shell, images.occluded.shape[-1]))
+
+
+def _ramp_width(shell: float, nx: int) -> float:
+    """The width Δρ / r of the cut's derivative ramp: one pixel at the cone's edge (x = ρ/√(R² − ρ²)
+    seen from the entry point, dx/dρ = shell²/(r (shell² − 1)^{3/2}) at ρ = r)."""
+    return 2.0 * (shell**2 - 1.0) / (nx * shell**2)
 
 
 @jax.jit
@@ -244,12 +249,18 @@ def _fan_lookup(shell, occluded, center, radius, origins, dx, dy, dz, axis, tang
     d_rel = _lin_sum(d_o, None if d_c is None else -d_c)
     d_rel = None if d_rel is None else jnp.broadcast_to(d_rel, rel.shape)  # a centre's tangent alone is (3,)
     d_big_r = None if d_r is None else shell * d_r
-    moving = [(x, t) for x, t in ((rel, d_rel), (axis, d_ax), (big_r, d_big_r)) if t is not None]
+    values, moves = (rel, axis, big_r), (d_rel, d_ax, d_big_r)
+    moving = [i for i, t in enumerate(moves) if t is not None]
+
+    def grid_of(*xs):  # of the moving inputs, the others held
+        args = list(values)
+        for i, x in zip(moving, xs, strict=True):
+            args[i] = x
+        return grid(*args)
+
     if moving:  # the per-origin part by JAX's JVP (N values, cheap), the rest written out below
         (gi, gj), (d_gi, d_gj) = jax.jvp(
-            lambda *xs: grid(*_replace((rel, axis, big_r), moving, xs)),
-            tuple(x for x, _ in moving),
-            tuple(t for _, t in moving),
+            grid_of, tuple(values[i] for i in moving), tuple(moves[i] for i in moving)
         )
     else:
         gi, gj = grid(rel, axis, big_r)
@@ -276,12 +287,8 @@ def _fan_lookup(shell, occluded, center, radius, origins, dx, dy, dz, axis, tang
         )
         for i, (di, ddi) in enumerate(((dx, d_dx), (dy, d_dy), (dz, d_dz)))
     ]
-    if coverage and live:  # the value and its two central-difference slopes, one-pixel padded
-        pad = jnp.pad(flat.reshape(-1, ny, nx), ((0, 0), (2, 2), (2, 2)))
-        tables = (
-            (0.5 * (pad[:, 1:-1, 2:] - pad[:, 1:-1, :-2])).reshape(-1),
-            (0.5 * (pad[:, 2:, 1:-1] - pad[:, :-2, 1:-1])).reshape(-1),
-        )
+    if coverage and live:
+        _, *slopes = _padded_tables(flat, ny, nx)
     vis = jnp.zeros(b.shape, dtype)
     d_vis = None
     for di in (0, 1):
@@ -326,11 +333,8 @@ def _fan_lookup(shell, occluded, center, radius, origins, dx, dy, dz, axis, tang
             d_y = _lin_sum(d_yl, None if d_zl is None else -y * d_zl)
             terms = []
             if d_x is not None or d_y is not None:
-                near = (px >= -1) & (px <= nx) & (py >= -1) & (py <= ny)
-                pxi = jnp.clip(px + 1, 0, nx + 1).astype(jnp.int32)
-                pyi = jnp.clip(py + 1, 0, ny + 1).astype(jnp.int32)
-                idx = (k * (ny + 2) + pyi) * (nx + 2) + pxi
-                for d_xy, table, scale in ((d_x, tables[0], nx), (d_y, tables[1], ny)):
+                near, idx = _padded_index(k, px, py, ny, nx)
+                for d_xy, table, scale in ((d_x, slopes[0], nx), (d_y, slopes[1], ny)):
                     if d_xy is not None:
                         slope = jnp.where(near, table[idx], 0.0).astype(dtype)
                         terms.append(slope * (d_xy * inv) * (scale / (2.0 * tan_a)))
@@ -347,7 +351,7 @@ def _fan_lookup(shell, occluded, center, radius, origins, dx, dy, dz, axis, tang
     if not coverage or reference:
         if coverage:  # the cut's ramp, for JAX's derivative (value-neutral), as written out below
             rho = safe_sqrt(rr[:, None] - b * b)
-            width = r * (2.0 * (shell**2 - 1.0) / (nx * shell**2))
+            width = r * _ramp_width(shell, nx)
             ramp = jnp.clip((r - rho) / width + 0.5, 0.0, 1.0)
             ramp = jnp.where(b < 0, ramp - lax.stop_gradient(ramp), 0.0)
             out = out - lax.stop_gradient(1.0 - vis) * ramp
@@ -357,13 +361,10 @@ def _fan_lookup(shell, occluded, center, radius, origins, dx, dy, dz, axis, tang
     d_out = jnp.zeros(b.shape, dtype) if d_vis is None else jnp.where(meets, d_vis, 0.0)
     # The cut at the bounding sphere (rays whose line misses it are free) is a jump of 1 − vis
     # where the line's distance ρ from c crosses r, which a sphere-like mesh's silhouette nearly
-    # meets. Its derivative, as the images' own: spread over the width Δρ = κ r of one pixel at the
-    # cone's edge (x = ρ/√(R² − ρ²) seen from the entry point, dx/dρ = shell²/(r (shell² − 1)^{3/2})
-    # at ρ = r), with no change of value: −(1 − vis) d/dt clip((r − ρ)/Δρ + ½, 0, 1).
-    kappa = 2.0 * (shell**2 - 1.0) / (nx * shell**2)
-    rho2 = rr[:, None] - b * b
-    rho = safe_sqrt(rho2)
-    width = r * kappa
+    # meets. Its derivative, as the images' own: spread over the width Δρ of one pixel at the cone's
+    # edge (:func:`_ramp_width`), with no change of value: −(1 − vis) d/dt clip((r − ρ)/Δρ + ½, 0, 1).
+    rho = safe_sqrt(rr[:, None] - b * b)
+    width = r * _ramp_width(shell, nx)
     arg = (r - rho) / width + 0.5
     ramping = (arg > 0.0) & (arg < 1.0) & (b < 0)
     d_rr = None if d_rel is None else 2.0 * (rx * d_rel[:, 0] + ry * d_rel[:, 1] + rz * d_rel[:, 2])
@@ -389,14 +390,6 @@ def _lin_sum(*terms):
     return out
 
 
-def _replace(values, moving, xs):
-    """``values`` with the entries paired in ``moving`` (by identity) replaced by ``xs``."""
-    out = list(values)
-    for (x, _), new in zip(moving, xs, strict=True):
-        out[next(i for i, v in enumerate(values) if v is x)] = new
-    return out
-
-
 @partial(jax.custom_jvp, nondiff_argnums=(0,))
 def _coverage_lookup(shell, occluded, center, radius, origins, dx, dy, dz, axis):
     """:func:`_fan_lookup`'s value for coverage images, with its written-out tangent."""
@@ -404,11 +397,16 @@ def _coverage_lookup(shell, occluded, center, radius, origins, dx, dy, dz, axis)
 
 
 def _coverage_lookup_jvp(shell, primals, tangents):
-    """The value, and the tangent in a ``lax.cond`` branch of its own (a predicate that holds for
-    any finite radius): XLA:CPU then compiles the tangent as a separate computation. Formed in
-    one program with the value, the lookups' four grid points no longer compile to a few fused
-    passes (BENCHMARKS.md, "Where the lookups' derivative goes": 14.0 against 34–38 ms on the egg's
-    receivers along the radius, and 42 ms for JAX's own JVP of the same lookups)."""
+    """The value and the written-out tangent. Where only the images, the centre or the radius move,
+    the tangent is formed in a ``lax.cond`` branch of its own (a predicate that holds for any finite
+    radius), which XLA:CPU compiles as a separate computation; formed in one program with the value,
+    the lookups' four grid points no longer compile to a few fused passes. Where the rays' own
+    inputs move (origins, directions, axes: a light's position), the same program is faster.
+    Measured on the egg's 16384 receivers × 32 rays, both versions loaded in one process
+    (BENCHMARKS.md, "Where the lookups' derivative goes"): in a branch / in one program / JAX's
+    derivative through :func:`_read`, the coverage's gradient 13.1 / 35.6 / 35.2 ms, the centre's
+    46.3 / 68.1 / 66.5 ms, the radius's forward-mode tangent 9.6 / 28.6 / 39.9 ms; the light
+    position's gradient of the airplane's fractions 62.5 / 38.9 / 42.0 ms."""
     out = _fan_lookup(shell, *primals)[0]
     live = tuple(not isinstance(t, SymbolicZero) for t in tangents)
     if not any(live):
@@ -420,6 +418,8 @@ def _coverage_lookup_jvp(shell, primals, tangents):
         full = tuple(next(it) if i else None for i in live)
         return _fan_lookup(shell, *primals, tangents=full)[1]
 
+    if any(live[3:]):  # origins, directions or axes move
+        return out, tangent(primals, given)
     d_out = lax.cond(primals[2] != jnp.inf, tangent, lambda p, g: jnp.zeros_like(out), primals, given)
     return out, d_out
 
@@ -455,24 +455,33 @@ def _read_jvp(ny, nx, primals, tangents):
     flat, k, u, v = primals
     dflat, _, du, dv = tangents
     px, py = jnp.floor(u), jnp.floor(v)
-    # the value and the two slopes from tables padded by one pixel (reads just outside the image
-    # still see its border), all at one index: three gathers instead of five
-    g = flat.reshape(-1, ny, nx)
-    pad = jnp.pad(g, ((0, 0), (2, 2), (2, 2)))
-    tables = (
-        pad[:, 1:-1, 1:-1],
-        0.5 * (pad[:, 1:-1, 2:] - pad[:, 1:-1, :-2]),
-        0.5 * (pad[:, 2:, 1:-1] - pad[:, :-2, 1:-1]),
-    )
-    near = (px >= -1) & (px <= nx) & (py >= -1) & (py <= ny)
-    pxi = jnp.clip(px + 1, 0, nx + 1).astype(jnp.int32)
-    pyi = jnp.clip(py + 1, 0, ny + 1).astype(jnp.int32)
-    idx = (k * (ny + 2) + pyi) * (nx + 2) + pxi
-    value, sx, sy = (jnp.where(near, t.reshape(-1)[idx], 0.0) for t in tables)
+    near, idx = _padded_index(k, px, py, ny, nx)
+    value, sx, sy = (jnp.where(near, t[idx], 0.0) for t in _padded_tables(flat, ny, nx))
     tangent = _zero_or(du, sx) + _zero_or(dv, sy)
     if not isinstance(dflat, SymbolicZero):
         tangent = tangent + _gather(dflat, k, px, py, ny, nx)
     return value, tangent
+
+
+def _padded_tables(flat, ny: int, nx: int):
+    """The images padded by one pixel of background and their two central-difference slopes, each
+    flattened to (G·(N_y + 2)·(N_x + 2),): a read's value and slopes at one index
+    (:func:`_padded_index`), reads just outside an image still seeing its border: three gathers
+    instead of five."""
+    pad = jnp.pad(flat.reshape(-1, ny, nx), ((0, 0), (2, 2), (2, 2)))
+    return (
+        pad[:, 1:-1, 1:-1].reshape(-1),
+        (0.5 * (pad[:, 1:-1, 2:] - pad[:, 1:-1, :-2])).reshape(-1),
+        (0.5 * (pad[:, 2:, 1:-1] - pad[:, :-2, 1:-1])).reshape(-1),
+    )
+
+
+def _padded_index(k, px, py, ny: int, nx: int):
+    """(within one pixel of image k, the index into :func:`_padded_tables`) of pixel (px, py)."""
+    near = (px >= -1) & (px <= nx) & (py >= -1) & (py <= ny)
+    pxi = jnp.clip(px + 1, 0, nx + 1).astype(jnp.int32)
+    pyi = jnp.clip(py + 1, 0, ny + 1).astype(jnp.int32)
+    return near, (k * (ny + 2) + pyi) * (nx + 2) + pxi
 
 
 def _zero_or(d, slope):
