@@ -48,6 +48,7 @@ BSV_GRADIENTS = ("auto", "raycast", "image", "scanline")
 BSV_CENTERS = ("placed", "box")
 SELF_VISIBILITIES = ("field", "rays")
 LIGHT_VISIBILITIES = ("sh", "images")
+LIGHT_IMAGES = ("samples", "coverage")
 
 
 @dataclass(frozen=True)
@@ -124,6 +125,14 @@ class Method:
     "Gradients through the occlusion images"); a sphere occluder's exact ray test has no derivative
     (differentiating its centre or radius raises).
 
+    ``light_images`` chooses the images those lookups read: "samples" (default) the edge-scan's
+    0/1 pixel-centre samples, read at the nearest pixel, whose derivative is an estimate (the
+    pixel taken as box-filtered coverage); "coverage" the same images made continuous along the
+    scan lines (:func:`jshadow.visibility.scan_coverage`), read bilinearly: the lookups are then
+    continuous in the vertices, lights and receivers, and their derivative is exact (JAX's, of
+    the forward pass that runs), at the cost of the scan lines' boundary crossings each pose
+    (BENCHMARKS.md "Coverage images").
+
     ``environment_lights`` K > 0 (a power of two; needs ``light_visibility = "images"``) splits a
     lat-long environment at ``environment_threshold`` × its mean luminance: the rest keeps the
     n-band path, the excess becomes K distant lights by median cut, shadowed through the same
@@ -149,6 +158,7 @@ class Method:
     self_visibility_grid: tuple[int, int] = (12, 48)  # θ × φ rays over each vertex's normal hemisphere
     light_visibility: str = "sh"  # "sh" | "images": how mesh occluders shadow sphere lights
     light_cap: tuple[int, int] = (4, 8)  # rings × sectors of light-cap directions for "images"
+    light_images: str = "samples"  # "samples" | "coverage": the images "images" reads (see above)
     environment_lights: int = 0  # K distant lights split off a lat-long map's bright part (0: none)
     environment_threshold: float = 4.0  # the split's radiance threshold over the map's mean
 
@@ -205,6 +215,8 @@ class Method:
             raise ValueError(
                 f"method.light_visibility must be one of {LIGHT_VISIBILITIES}, got {self.light_visibility!r}"
             )
+        if self.light_images not in LIGHT_IMAGES:
+            raise ValueError(f"method.light_images must be one of {LIGHT_IMAGES}, got {self.light_images!r}")
         c = self.light_cap
         if len(c) != 2 or min(c) < 1:
             raise ValueError(f"method.light_cap must be two integers >= 1 (rings, sectors), got {c}")

@@ -81,6 +81,7 @@ from .visibility import (
     occlusion_images,
     ray_fan_any_hit,
     ray_sphere_any_hit,
+    scan_coverage,
     vertex_visibility_sh,
 )
 from .visibility._edgescan import always, staged
@@ -644,6 +645,8 @@ def occluder_images(occ, t, scene: Scene, differentiable: bool = True) -> Occlus
     m = scene.method
     v = bsv_input_vertices(occ, _vertices_at(occ, jnp.asarray(t, occ.unit_vertices.dtype)), m)
     faces = occ.faces
+    if m.light_images == "coverage":
+        return _coverage_images(occ, v, m)
 
     def forward(x):
         return occlusion_images(x, faces, tuple(m.bsv_grid), tuple(m.directions), float(m.shell))
@@ -657,6 +660,25 @@ def occluder_images(occ, t, scene: Scene, differentiable: bool = True) -> Occlus
     return OcclusionImages(
         occluded=img.occluded.astype(v.dtype), center=img.center, radius=img.radius, shell=img.shell
     )
+
+
+def _coverage_images(occ: MeshOccluder, v, m) -> OcclusionImages:
+    """``method.light_images = "coverage"``: the scan lines' coverage images of the sampler's input
+    vertices ``v`` (:func:`jshadow.visibility.scan_coverage`), read bilinearly, differentiable by
+    JAX itself (exact). Sizes as the scanline derivative's (measured on concrete poses)."""
+    faces = _concrete(occ.faces)
+    if faces is None or not _uses_edgescan(m, faces):
+        raise ValueError(
+            "method.light_images = 'coverage' needs the edge-scan: concrete, closed, consistently "
+            "wound manifold mesh faces (build the scene outside jax transformations)"
+        )
+    es = _edgescan_slots(occ, faces, m)
+    ss = _scan_grad_slots(occ, faces, m)
+    cov = scan_coverage(v, faces, m.bsv_grid, m.directions, m.shell, slots=es, scan_slots=ss)
+    center, radius = bounding_sphere(v)
+    if _placed(occ, m):
+        center = jnp.asarray(occ.center, v.dtype)  # as mesh_bsv: no identically-zero vertex path
+    return OcclusionImages(occluded=cov, center=center, radius=radius, shell=float(m.shell), reads="bilinear")
 
 
 def _mesh_bsv_and_images(occ: MeshOccluder, v, faces: np.ndarray, m) -> tuple[BSV, OcclusionImages]:
@@ -682,7 +704,7 @@ def occluder_bsv_and_images(occ: MeshOccluder, t, scene: Scene) -> tuple[BSV, Oc
     sample this mesh with the edge-scan (then the two are computed apart)."""
     m = scene.method
     faces = _concrete(occ.faces)
-    if faces is None or not _uses_edgescan(m, faces):
+    if faces is None or not _uses_edgescan(m, faces) or m.light_images == "coverage":
         return None
     v = bsv_input_vertices(occ, _vertices_at(occ, jnp.asarray(t, occ.unit_vertices.dtype)), m)
     if _concrete(v) is None:
@@ -709,7 +731,12 @@ def scene_bsvs_and_images(
     bsvs, images = [], []
     for occ in scene.occluders:
         faces = _concrete(occ.faces) if isinstance(occ, MeshOccluder) else None
-        if faces is not None and _uses_edgescan(m, faces) and bsv_gradient_mode(m, faces) == "image":
+        shared = (
+            m.light_images == "samples" and bsv_gradient_mode(m, faces) == "image"
+            if faces is not None
+            else False
+        )
+        if shared and _uses_edgescan(m, faces):
             v = bsv_input_vertices(occ, _vertices_at(occ, jnp.asarray(t, occ.unit_vertices.dtype)), m)
             if isinstance(v, jax.core.Tracer):
                 bsv, img = _mesh_bsv_and_images(occ, v, faces, m)

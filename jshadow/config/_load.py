@@ -25,6 +25,7 @@ from ._schema import (
     BSV_CENTERS,
     BSV_GRADIENTS,
     ENVIRONMENT_TYPES,
+    LIGHT_IMAGES,
     LIGHT_TYPES,
     LIGHT_VISIBILITIES,
     MESH_SHAPES,
@@ -195,6 +196,7 @@ _METHOD_KEYS = (
     "self_visibility_grid",
     "light_visibility",
     "light_cap",
+    "light_images",
     "environment_lights",
     "environment_threshold",
 )
@@ -228,6 +230,7 @@ def _method(t: _Table) -> MethodConfig:
         self_visibility_grid=t.integers("self_visibility_grid", 2, [12, 48], lo=2),
         light_visibility=t.string("light_visibility", "sh", choices=LIGHT_VISIBILITIES),
         light_cap=t.integers("light_cap", 2, [4, 8], lo=1),
+        light_images=t.string("light_images", "samples", choices=LIGHT_IMAGES),
         environment_lights=t.integer("environment_lights", 0, lo=0),
         environment_threshold=t.number("environment_threshold", 4.0, check="positive"),
     )

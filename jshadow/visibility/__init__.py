@@ -14,6 +14,7 @@
   with the exact layer count at every crossing (faster on large meshes, noisier per vertex).
 * :mod:`._own`: a mesh's visibility of itself at its own vertices, by rays (self-shadowing).
 * :mod:`._images`: single rays looked up in the BSV's occlusion images (sharp sphere-light shadows).
+* :mod:`._coverage`: those images made continuous along the scan lines, with an exact derivative.
 """
 
 from ._bsv import BSV as BSV
@@ -28,6 +29,7 @@ from ._bsv import is_closed_manifold as is_closed_manifold
 from ._bsv_grad import bsv_mesh_diff as bsv_mesh_diff
 from ._bsv_grad import bsv_sh_tangent as bsv_sh_tangent
 from ._bsv_grad import bsv_silhouette_counts as bsv_silhouette_counts
+from ._coverage import scan_coverage as scan_coverage
 from ._directions import cap_sh_projection as cap_sh_projection
 from ._directions import far_hemisphere_sh_projection as far_hemisphere_sh_projection
 from ._directions import hemisphere_directions as hemisphere_directions

@@ -283,11 +283,11 @@ def _start_rows(py, *, directions, shell):
     return jnp.clip(jnp.ceil((py + tan_a) / dy - 0.5), 0, ny).astype(dtype)
 
 
-def _scan_lists(x, faces, table, grid, directions, shell, slots, row_slots, n):
+def _scan_lists(x, faces, table, grid, directions, shell, slots, row_slots, n, with_counts=False):
     """One edge-scan pass and both scans' crossings: the forward coefficients (G, n²), the merged
     crossings (:func:`_merge`), their σ (:func:`_boundary_sign`), the slots of both scans (for the
     crossings' ``sid``) and the sizes needed (8,): the column scan's ``(S, S2, S3, K)``, then the
-    row scan's."""
+    row scan's; ``with_counts`` appends the layer counts at the pixel centres (G, N_x, N_y)."""
     views = grid[0] * grid[1]
     ny, nx = directions
     diff, _, need, _, radius, (slot, cols, (px, py, front)) = _run(
@@ -308,6 +308,8 @@ def _scan_lists(x, faces, table, grid, directions, shell, slots, row_slots, n):
     merge = partial(_merge, views=views, directions=directions)
     cr, flat, slot_all = stage(merge, cols, rows, counts, slot, slot_r)
     sigma = stage(partial(_boundary_sign, views=views, directions=directions, shell=shell), cr, flat)
+    if with_counts:
+        return out, cr, sigma, slot_all, jnp.concatenate([need, need_r]), counts
     return out, cr, sigma, slot_all, jnp.concatenate([need, need_r])
 
 

@@ -86,12 +86,20 @@ class OcclusionImages(eqx.Module):
         center: (3,) bounding-sphere centre c (world units).
         radius: () bounding-sphere radius r.
         shell: the shell radius over r (static; the cone's half-angle is asin(1/shell)).
+        reads: how lookups read the images (static): "nearest" pixel (the 0/1 samples) or
+            "bilinear" between pixel centres (continuous images such as
+            :func:`jshadow.visibility.scan_coverage`'s; their derivative is then JAX's own).
     """
 
     occluded: Bool[Array, "T P Ny Nx"] | Float[Array, "T P Ny Nx"]
     center: Float[Array, "3"]
     radius: Float[Array, ""]
     shell: float = eqx.field(static=True)
+    reads: str = eqx.field(static=True, default="nearest")
+
+    def __check_init__(self):
+        if self.reads not in ("nearest", "bilinear"):
+            raise ValueError(f"reads must be 'nearest' or 'bilinear', got {self.reads!r}")
 
 
 def occlusion_images(
@@ -205,10 +213,14 @@ def image_fan_visibility_components(
     )
     if jnp.issubdtype(images.occluded.dtype, jnp.bool_):
         return _fan_lookup(images.shell, *args)[0]
+    if images.reads == "bilinear":  # continuous in every input: JAX's derivative is the exact one
+        return _fan_lookup(images.shell, *args, bilinear=True)[0]
     return _coverage_lookup(images.shell, *args)
 
 
-def _fan_lookup(shell, occluded, center, radius, origins, dx, dy, dz, axis, tangents=None, reference=False):
+def _fan_lookup(
+    shell, occluded, center, radius, origins, dx, dy, dz, axis, tangents=None, reference=False, bilinear=False
+):
     """The lookups of :func:`image_fan_visibility_components` (inputs in one dtype): ``(value,
     tangent)``, the tangent None unless ``tangents`` (one per input after ``shell``, None where
     zero) are given, then the derivative of the coverage images' lookups (module docstring) written
@@ -218,6 +230,8 @@ def _fan_lookup(shell, occluded, center, radius, origins, dx, dy, dz, axis, tang
     ``reference``, coverage is read through :func:`_read` instead and JAX's own derivative of the
     whole lookup applies: the same derivative (``tests/test_image_lookup_grad.py`` checks every
     input in float64), formed 2.6× slower (BENCHMARKS.md "Where the lookups' derivative goes").
+    With ``bilinear`` (float images, no ``tangents``) each image is read bilinearly between its
+    pixel centres (:func:`_bilinear`) instead.
     """
     live = tangents is not None
     d_occ, d_c, d_r, d_o, d_dx, d_dy, d_dz, d_ax = tangents if live else (None,) * 8
@@ -313,7 +327,9 @@ def _fan_lookup(shell, occluded, center, radius, origins, dx, dy, dz, axis, tang
             u = (x + tan_a) * (nx / (2.0 * tan_a))  # continuous pixel coordinates
             v = (y + tan_a) * (ny / (2.0 * tan_a))
             k = (ii * p_n + jj)[:, None]
-            if coverage and reference:
+            if bilinear:
+                hit = _bilinear(flat, k, u, v, ny, nx) * front.astype(flat.dtype)
+            elif coverage and reference:
                 hit = _read(flat, k, u, v, ny, nx) * front.astype(flat.dtype)
             else:
                 px, py = jnp.floor(u), jnp.floor(v)
@@ -435,6 +451,19 @@ def _gather(flat, k, px, py, ny: int, nx: int):
     pyi = jnp.clip(py, 0, ny - 1).astype(jnp.int32)
     got = flat[(k * ny + pyi) * nx + pxi]
     return got & inside if got.dtype == jnp.bool_ else jnp.where(inside, got, 0.0)
+
+
+def _bilinear(flat, k, u, v, ny: int, nx: int):
+    """The (G·N_y·N_x,) float images read bilinearly between pixel centres at the continuous pixel
+    coordinates (u, v) (pixel (i, j) spans [j, j + 1) × [i, i + 1); background 0 outside)."""
+    uu, vv = u - 0.5, v - 0.5
+    x0, y0 = jnp.floor(uu), jnp.floor(vv)
+    ax, ay = uu - x0, vv - y0
+    lo = (1.0 - ax) * _gather(flat, k, x0, y0, ny, nx) + ax * _gather(flat, k, x0 + 1.0, y0, ny, nx)
+    hi = (1.0 - ax) * _gather(flat, k, x0, y0 + 1.0, ny, nx) + ax * _gather(
+        flat, k, x0 + 1.0, y0 + 1.0, ny, nx
+    )
+    return (1.0 - ay) * lo + ay * hi
 
 
 @partial(jax.custom_jvp, nondiff_argnums=(4, 5))

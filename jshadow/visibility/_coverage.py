@@ -1,0 +1,173 @@
+"""Coverage images: the edge-scan's occlusion images made continuous along its scan lines.
+
+The edge-scan (:mod:`jshadow.visibility._edgescan`) samples each shell point's gnomonic image at the
+pixel centres: a pixel is occluded (1) or free (0) by the layer count at its centre, a piecewise
+constant function of the mesh's vertices with no useful derivative. Along every pixel column,
+though, the scan knows more: the heights ``y_i`` where the column's centre line crosses the
+boundary of the occluded region Ω, with the sign of the change (the scanline derivative's boundary
+crossings, σ ≠ 0, :mod:`jshadow.visibility._edgescan_scan`). The *column coverage* of a pixel is
+the fraction of its column's centre line inside the pixel that lies in Ω,
+
+    c = b + Σ_i t_i,   t_i = s_i (1 − f_i) if f_i > ½ else −s_i f_i,
+
+with ``b`` the pixel's centre value, ``f_i`` the crossing's height within the pixel (0 at its lower
+edge, 1 at its upper) and ``s_i = +1`` where the line enters Ω going up (−1 where it leaves), the
+sum over the boundary crossings inside the pixel: the exact measure of Ω on that segment. The *row
+coverage* is the same along the pixel rows (the row scan), and the default is their mean.
+
+Unlike the centre samples, the coverage is a continuous function of the vertices: a crossing that
+moves through a pixel centre swaps a unit of ``b`` for the same unit of its term, one that moves into
+the next pixel takes a term that has gone to 0, and crossings appear and vanish in pairs of opposite
+sign at the same height. It is piecewise smooth, and its derivative is exact and cheap: the
+integer structure (which crossing, which pixel, which side of the centre) is the scan's, on
+``stop_gradient`` vertices, and each boundary crossing's height is recomputed differentiably from
+its edge's two vertices and the view's sample point (p = c(X) + shell·r(X)·u moves with them), so
+``dc = −Σ_i s_i dy_i / Δy``. A lookup that reads such images bilinearly is then differentiable
+exactly, instead of through a model of the box-filtered pixel (:func:`jshadow.visibility.
+image_fan_visibility_components`, whose derivative for the 0/1 images is an estimate).
+
+Accuracy and cost: BENCHMARKS.md "Coverage images". Limitations: the coverage of a pixel is measured
+on its centre lines only (a feature between two lines is missed as by the centre samples); the
+mesh must be one the edge-scan samples (closed, consistently wound manifold, shell > 1); sizes are
+static (the scanline derivative's slots, measured on a concrete pose), and a traced pose that
+overflows them raises at run time.
+"""
+
+from __future__ import annotations
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Float, Int
+
+from ._bsv_grad import _sample_points
+from ._edgescan import _cached_edge_table, _resolve
+from ._edgescan_scan import _compact_boundary, _scan_lists, edgescan_scan_slots
+
+__all__ = ["scan_coverage"]
+
+SCANS = ("both", "columns", "rows")
+
+_COVERAGE_OVERFLOW = (
+    "coverage images: the edge-scan's or the scan lines' static sizes overflowed for this pose, and "
+    "crossings would be missing; pass larger slots and scan_slots (see edgescan_slots and "
+    "edgescan_scan_slots), measured on a pose as deformed as this one"
+)
+
+
+def scan_coverage(
+    vertices: Float[ArrayLike, "V 3"],
+    faces: Int[ArrayLike, "F 3"],
+    grid: tuple[int, int] = (12, 20),
+    directions: tuple[int, int] = (32, 32),
+    shell: float = 1.5,
+    *,
+    scans: str = "both",
+    edge_table=None,
+    slots: tuple[int, int, int, int] | None = None,
+    scan_slots: tuple[int, ...] | None = None,
+) -> Float[Array, "T P Ny Nx"]:
+    """Coverage images (T, P, N_y, N_x) in [0, 1] of a closed mesh on the BSV's shell (module
+    docstring), in the layout of :func:`jshadow.visibility.edgescan_occlusion`'s 0/1 images, which
+    they equal wherever no boundary crosses a pixel's centre lines.
+
+    Args:
+        vertices: (V, 3) float, world units; differentiable (``jax.jvp``/``jax.grad``: the exact
+            derivative of the coverage, module docstring). faces: (F, 3) int, concrete, closed,
+            consistently wound, edge-manifold.
+        grid, directions, shell: as for :func:`jshadow.visibility.bsv_mesh_edgescan`.
+        scans: "both" (default: the mean of the column and the row coverage), "columns" or "rows".
+        edge_table, slots: as for :func:`jshadow.visibility.bsv_mesh_edgescan`.
+        scan_slots: the scan lines' sizes (:func:`jshadow.visibility.edgescan_scan_slots`); None
+            measures them on ``vertices``, which must then be concrete.
+
+    Raises at run time (also under ``jax.jit``) when a pose overflows the static sizes.
+    """
+    if scans not in SCANS:
+        raise ValueError(f"scans must be one of {SCANS}, got {scans!r}")
+    faces_np = np.asarray(faces, np.int32)  # concrete topology (raises for traced faces)
+    if edge_table is None:
+        edge_table = _cached_edge_table(faces_np, jnp.shape(vertices)[0])
+    vertices, faces_j, table, grid, directions, shell, slots = _resolve(
+        vertices, faces_np, grid, directions, shell, edge_table, slots
+    )
+    if scan_slots is None:
+        if isinstance(vertices, jax.core.Tracer):
+            raise TypeError("scan_coverage of traced vertices needs scan_slots measured on a concrete pose")
+        scan_slots = edgescan_scan_slots(
+            vertices, faces_np, grid, directions, shell, edge_table=table, slots=slots
+        )
+    scan_slots = tuple(int(s) for s in scan_slots)
+    return _coverage_jit(vertices, faces_j, table, grid, directions, shell, tuple(slots), scan_slots, scans)
+
+
+def _coverage(x, faces, table, grid, directions, shell, slots, scan_slots, scans):
+    ny, nx = directions
+    views = grid[0] * grid[1]
+    xs = jax.lax.stop_gradient(x)
+    _, cr, sigma, slot_all, need, counts = _scan_lists(
+        xs, faces, table, grid, directions, shell, slots, scan_slots[:4], 1, with_counts=True
+    )
+    cr, sigma, n_boundary = _compact_boundary(cr, sigma, scan_slots[4])
+    limit = jnp.asarray([*slots, *scan_slots[:4]], jnp.int32)
+    overflow = jnp.any(need.astype(jnp.int32) > limit) | (n_boundary > scan_slots[4])
+    tan_a = 1.0 / math.sqrt(shell * shell - 1.0)
+    tr = cr["tr"]
+    lines = jnp.where(tr, nx, ny)  # pixels along this crossing's scan line
+    step = 2.0 * tan_a / lines
+    height = cr["y"] + _height_tangent(x, cr, slot_all, table, grid, directions, shell)
+    pos = (height + tan_a) / step  # continuous pixel coordinate along the line
+    cell = jnp.clip(jnp.floor(jax.lax.stop_gradient(pos)), 0, lines - 1)
+    frac = pos - cell
+    s = -sigma  # +1 where the line enters the occluded set going up (rows: right)
+    live = cr["valid"] & (sigma != 0)
+    term = jnp.where(live, jnp.where(frac > 0.5, s * (1.0 - frac), -s * frac), 0.0).astype(x.dtype)
+    cell = cell.astype(jnp.int32)
+    view = slot_all[cr["sid"]] % views
+    line = cr["col"]
+    # column scan: (view, row = cell, column = line); row scan: (view, row = line, column = cell)
+    iy = jnp.where(tr, line, cell)
+    ix = jnp.where(tr, cell, line)
+    flat = (view * ny + iy) * nx + ix
+    binary = (jnp.swapaxes(counts, 1, 2) != 0).astype(x.dtype).reshape(-1)
+    size = views * ny * nx
+    col = jnp.zeros(size, x.dtype).at[flat].add(jnp.where(tr, 0.0, term))
+    row = jnp.zeros(size, x.dtype).at[flat].add(jnp.where(tr, term, 0.0))
+    extra = {"both": 0.5 * (col + row), "columns": col, "rows": row}[scans]
+    out = (binary + extra).reshape(grid[0], grid[1], ny, nx)
+    return eqx.error_if(out, overflow, _COVERAGE_OVERFLOW)
+
+
+_coverage_jit = jax.jit(_coverage, static_argnums=(3, 4, 5, 6, 7, 8))
+
+
+def _height_tangent(x, cr, slot_all, table, grid, directions, shell):
+    """Zero in value, with the derivative of each crossing's height along its line (C,): the height
+    of its edge's line at the line's centre coordinate, recomputed from the edge's two vertices and
+    the view's sample point and frame (as the scanline derivative's terms are)."""
+    ny, nx = directions
+    views = grid[0] * grid[1]
+    tan_a = 1.0 / math.sqrt(shell * shell - 1.0)
+    tr = cr["tr"]
+    s = slot_all[cr["sid"]]
+    edge, view = s // views, s % views
+    va, vb = table.a[edge], table.b[edge]
+    points, frames = _sample_points(x, grid, shell)
+    f = frames[view]  # (C, 3, 3) world = F @ local
+    f = jnp.where(tr[:, None, None], f[:, :, jnp.array([1, 0, 2])], f)  # rows: local' = (y, x, z)
+    qa = jnp.einsum("cji,cj->ci", f, x[va] - points[view])
+    qb = jnp.einsum("cji,cj->ci", f, x[vb] - points[view])
+    valid = cr["valid"] & (qa[:, 2] > 0) & (qb[:, 2] > 0)
+    qaz = jnp.where(valid, qa[:, 2], 1.0)
+    qbz = jnp.where(valid, qb[:, 2], 1.0)
+    xa, ya, xb, yb = qa[:, 0] / qaz, qa[:, 1] / qaz, qb[:, 0] / qbz, qb[:, 1] / qbz
+    run = xb - xa
+    crosses = valid & (run != 0)
+    run = jnp.where(crosses, run, 1.0)  # double where: no division for padding
+    lines = jnp.where(tr, ny, nx)  # lines of this scan (columns: N_x; rows: N_y)
+    xj = (cr["col"].astype(x.dtype) + 0.5) * (2.0 * tan_a / lines) - tan_a
+    y = ya + (xj - xa) / run * (yb - ya)
+    return jnp.where(crosses, y - jax.lax.stop_gradient(y), 0.0)
