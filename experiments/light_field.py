@@ -16,7 +16,9 @@ For every case of ``experiments/models.py`` with a sphere light or a lat-long ma
 cached there), and an untuned one (``airplane_studio_twist``: the twisted airplane under the
 studio map turned by 2 rad), this script renders the default and ``light_visibility = "images"``
 at several sizes — the BSV grid and image resolution (``bsv_grid``, ``directions``), the cap
-directions (``light_cap``), the number of environment lights and their threshold — with
+directions (``light_cap``), the images read (``light_images``: the 0/1 pixel samples at the
+nearest pixel, or the scan lines' coverage bilinearly), the number of environment lights and
+their threshold — with
 :class:`jshadow.Renderer` (fresh renderers, BSV and images sampled every frame), and reports the
 error against the reference with the time per frame of the same run (``models.timed``: median warm
 frame, 32² plane).
@@ -73,11 +75,14 @@ SETTINGS = {
     "default (n-band)": {},
     "images, cap 2x8": dict(IMAGES, light_cap=(2, 8)),
     "images (12x20, 32², cap 4x8)": IMAGES,
+    # the same images made continuous along the scan lines and read bilinearly (exact derivative)
+    "images, coverage": dict(IMAGES, light_images="coverage"),
     "images, cap 8x16": dict(IMAGES, light_cap=(8, 16)),
     "images, 24x40, 64², cap 8x16": dict(IMAGES, **FINE),
     # the map's bright part as distant lights through the same images (lat-long maps only)
     "images + 8 env lights": dict(IMAGES, environment_lights=8),
     "images + 32 env lights": ENV32,
+    "images + 32 env lights, coverage": dict(ENV32, light_images="coverage"),
     "images + 32 env lights, threshold 1": dict(ENV32, environment_threshold=1.0),
     "images + 32 env lights, threshold 16": dict(ENV32, environment_threshold=16.0),
     "images + 32 env lights, self rays": dict(ENV32, **RAYS),
@@ -88,6 +93,7 @@ ROWS = {  # the error maps' rows: (label, setting); a row is left blank where it
     "default (n-band)": "default (n-band)",
     '"images"': "images (12x20, 32², cap 4x8)",
     '"images" + 32 env lights': "images + 32 env lights",
+    '"images", coverage': "images, coverage",
 }
 
 
