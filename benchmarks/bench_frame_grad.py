@@ -19,7 +19,8 @@ same receivers:
 
 ``--light-visibility sh images`` times each setting of ``[method] light_visibility`` in the same run
 (``images``: the sphere lights' visible fractions looked up in the occlusion images, and their
-derivative through the coverage images).
+derivative through the coverage images; ``coverage``: the same with ``light_images = "coverage"``,
+the scan lines' coverage read bilinearly, whose derivative is exact).
 
 ``--ab-plane-first`` instead times, per config and setting, the forward and value_and_grad with the
 field evaluated on the plane and on the own vertices as two calls (``render_at``'s
@@ -85,7 +86,10 @@ def _scene(path: str, bsv_gradient: str, light_visibility: str = "sh"):
     """The config's scene with ``[method] bsv_gradient`` and ``light_visibility`` set."""
     d = tomllib.loads((ROOT / path).read_text())
     d.setdefault("method", {})["bsv_gradient"] = bsv_gradient
-    d["method"]["light_visibility"] = light_visibility
+    # "coverage": the images' lookups reading the scan lines' coverage (light_images = "coverage")
+    d["method"]["light_visibility"] = "images" if light_visibility == "coverage" else light_visibility
+    if light_visibility == "coverage":
+        d["method"]["light_images"] = "coverage"
     return build_scene(config_from_dict(d, source=path, root=(ROOT / path).parent))
 
 
@@ -222,8 +226,9 @@ def main(argv=None) -> int:
         "--light-visibility",
         nargs="*",
         default=["sh"],
-        choices=["sh", "images"],
-        help="[method] light_visibility settings to time (same run; 'images' differentiates the lookups)",
+        choices=["sh", "images", "coverage"],
+        help="[method] light_visibility settings to time (same run; 'images' differentiates the lookups, "
+        "'coverage' is 'images' with light_images = 'coverage')",
     )
     ap.add_argument("--ab-plane-first", action="store_true", help="time plane_first=True against False")
     args = ap.parse_args(argv)

@@ -39,6 +39,7 @@ import pathlib
 import sys
 import time
 
+import jax
 import jax.numpy as jnp
 import matplotlib
 import numpy as np
@@ -167,6 +168,9 @@ def main() -> None:
             {row: got[lb][:n_plane] for row, lb in ROWS.items() if lb in got},
         )
         out.write_text(json.dumps(results, indent=1))
+        # every setting compiles its own programs: dropped after each case, or a run of all cases
+        # runs out of memory for compiled code (LLVM "Cannot allocate memory", 2026-12-06)
+        jax.clear_caches()
     results["seconds"] = time.perf_counter() - t_start
     fig, axes = plt.subplots(
         len(ROWS), len(maps), figsize=(2.4 * len(maps), 2.4 * len(ROWS)), dpi=100, squeeze=False
