@@ -154,3 +154,20 @@ def test_light_images_key_is_read_and_checked():
         config_from_dict({**base, "method": {"light_images": "bilinear"}})
     with pytest.raises(ValueError, match="light_images"):
         Method(light_images="area")
+
+
+def test_sizes_too_small_grow_on_concrete_poses_and_raise_under_a_trace():
+    v, f = _lumpy_egg()
+    want = np.asarray(scan_coverage(v, f, GRID, DIRS, 1.5))
+    small_slots, small_scan = (64, 32, 8, 2), (64, 32, 8, 2, 64)
+    got = np.asarray(scan_coverage(v, f, GRID, DIRS, 1.5, slots=small_slots, scan_slots=small_scan))
+    np.testing.assert_allclose(got, want, atol=1e-6)
+    # a mesh never seen concretely with these sizes: under a trace its overflow raises at run time
+    m = egg(1)
+    v1, f1 = np.asarray(m.vertices, np.float32), np.asarray(m.faces)
+
+    def traced(x):
+        return scan_coverage(x, f1, GRID, DIRS, 1.5, slots=small_slots, scan_slots=small_scan)
+
+    with pytest.raises(Exception, match="overflowed"):
+        jax.block_until_ready(jax.jit(traced)(jnp.asarray(v1)))

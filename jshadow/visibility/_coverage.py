@@ -44,7 +44,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
 from ._bsv_grad import _sample_points
-from ._edgescan import _cached_edge_table, _resolve
+from ._edgescan import _cached_edge_table, _resolve, edgescan_slots
 from ._edgescan_scan import _compact_boundary, _scan_lists, edgescan_scan_slots
 
 __all__ = ["scan_coverage"]
@@ -84,7 +84,8 @@ def scan_coverage(
         scan_slots: the scan lines' sizes (:func:`jshadow.visibility.edgescan_scan_slots`); None
             measures them on ``vertices``, which must then be concrete.
 
-    Raises at run time (also under ``jax.jit``) when a pose overflows the static sizes.
+    Concrete vertices that overflow the static sizes measure their own (remembered per mesh and
+    sizes for later calls) and run again; traced ones raise at run time (also under ``jax.jit``).
     """
     if scans not in SCANS:
         raise ValueError(f"scans must be one of {SCANS}, got {scans!r}")
@@ -94,14 +95,45 @@ def scan_coverage(
     vertices, faces_j, table, grid, directions, shell, slots = _resolve(
         vertices, faces_np, grid, directions, shell, edge_table, slots
     )
+    traced = isinstance(vertices, jax.core.Tracer)
     if scan_slots is None:
-        if isinstance(vertices, jax.core.Tracer):
+        if traced:
             raise TypeError("scan_coverage of traced vertices needs scan_slots measured on a concrete pose")
         scan_slots = edgescan_scan_slots(
             vertices, faces_np, grid, directions, shell, edge_table=table, slots=slots
         )
-    scan_slots = tuple(int(s) for s in scan_slots)
-    return _coverage_jit(vertices, faces_j, table, grid, directions, shell, tuple(slots), scan_slots, scans)
+    key = (faces_np.shape, hash(faces_np.tobytes()), grid, directions, shell)
+    slots, scan_slots = _larger((slots, scan_slots), _GROWN.get(key))
+    if traced:
+        out, overflow = _coverage_jit(
+            vertices, faces_j, table, grid, directions, shell, slots, scan_slots, scans
+        )
+        return eqx.error_if(out, overflow, _COVERAGE_OVERFLOW)
+    for _ in range(3):  # concrete: a pose that needs more than the sizes given measures its own
+        out, overflow = _coverage_jit(
+            vertices, faces_j, table, grid, directions, shell, slots, scan_slots, scans
+        )
+        if not bool(overflow):
+            return out
+        own = edgescan_slots(vertices, faces_np, grid, directions, shell, edge_table=table)
+        own = (
+            own,
+            edgescan_scan_slots(vertices, faces_np, grid, directions, shell, edge_table=table, slots=own),
+        )
+        slots, scan_slots = _GROWN[key] = _larger((slots, scan_slots), own)
+    raise RuntimeError(_COVERAGE_OVERFLOW)
+
+
+_GROWN: dict = {}  # (faces, grid, directions, shell) -> the sizes grown for concrete poses that needed more
+
+
+def _larger(a, b):
+    """The element-wise larger of two (slots, scan_slots) pairs (``b`` may be None)."""
+    if b is None:
+        return tuple(int(x) for x in a[0]), tuple(int(x) for x in a[1])
+    return tuple(max(int(x), int(y)) for x, y in zip(a[0], b[0], strict=True)), tuple(
+        max(int(x), int(y)) for x, y in zip(a[1], b[1], strict=True)
+    )
 
 
 def _coverage(x, faces, table, grid, directions, shell, slots, scan_slots, scans):
@@ -137,8 +169,7 @@ def _coverage(x, faces, table, grid, directions, shell, slots, scan_slots, scans
     col = jnp.zeros(size, x.dtype).at[flat].add(jnp.where(tr, 0.0, term))
     row = jnp.zeros(size, x.dtype).at[flat].add(jnp.where(tr, term, 0.0))
     extra = {"both": 0.5 * (col + row), "columns": col, "rows": row}[scans]
-    out = (binary + extra).reshape(grid[0], grid[1], ny, nx)
-    return eqx.error_if(out, overflow, _COVERAGE_OVERFLOW)
+    return (binary + extra).reshape(grid[0], grid[1], ny, nx), overflow
 
 
 _coverage_jit = jax.jit(_coverage, static_argnums=(3, 4, 5, 6, 7, 8))
