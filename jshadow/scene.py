@@ -638,7 +638,9 @@ def occluder_images(occ, t, scene: Scene, differentiable: bool = True) -> Occlus
     :func:`jshadow.visibility.bsv_and_coverage_edgescan_diff` (which needs the edge-scan: concrete
     closed manifold faces; a mesh without it raises :data:`TRACED_FACES` when differentiated).
     ``differentiable=False`` gives the boolean images (the :class:`jshadow.runner.Renderer`'s, no
-    derivative at all).
+    derivative at all). With ``method.light_images = "coverage"`` both give the scan lines'
+    coverage images (:func:`jshadow.visibility.scan_coverage`), read bilinearly, whose derivative
+    is JAX's own and exact.
     """
     if not isinstance(occ, MeshOccluder):
         return None

@@ -34,6 +34,10 @@ the light's centre, its own centre and radius 1.7 %, 8 % and 4.6 % from the clos
 24² receivers; a taper's 5.4 % from exact ray-cast differences (``experiments/image_grad.py``:
 0.6–19 % on the shipped deforming configs).
 
+Images with ``reads = "bilinear"`` (:func:`jshadow.visibility.scan_coverage`'s coverage along the
+scan lines) are read bilinearly between pixel centres instead: continuous lookups whose derivative
+is JAX's own, exact for what they compute (BENCHMARKS.md "Coverage images").
+
 Accuracy (``experiments/light_field.py``, BENCHMARKS.md "Sharp sphere-light shadows"): the
 visible fraction of a sphere light from 4 × 8 cap directions looked up this way brings the mesh
 scenes with sphere lights to about 1 % relative RMSE of irradiance or less, where the n-band
