@@ -299,18 +299,20 @@ def _lookup_case(rng, shared_dirs):
 
 @pytest.mark.usefixtures("x64")
 @pytest.mark.parametrize("shared_dirs", [False, True])
-def test_written_out_tangent_is_the_reference_derivative(shared_dirs, rng):
+@pytest.mark.parametrize("bilinear", [False, True])
+def test_written_out_tangent_is_the_reference_derivative(shared_dirs, bilinear, rng):
     """The coverage lookups' tangent, written out (:func:`_coverage_lookup`), against JAX's own
-    derivative of the same lookups read through :func:`_read` (``reference=True``): equal to
-    rounding along every input alone (a tangent of only the centre, only the radius, ... — the
-    symbolic zeros of the others), along all together, and in reverse mode for every input."""
+    derivative of the same lookups read through :func:`_read` (``reference=True``), or for bilinear
+    reads (``light_images = "coverage"``) of the same bilinear lookups: equal to rounding along
+    every input alone (a tangent of only the centre, only the radius, ... — the symbolic zeros of
+    the others), along all together, and in reverse mode for every input."""
     args = _lookup_case(rng, shared_dirs)
 
     def ours(*a):
-        return _coverage_lookup(1.5, *a)
+        return _coverage_lookup(1.5, bilinear, *a)
 
     def reference(*a):
-        return _fan_lookup(1.5, *a, reference=True)[0]
+        return _fan_lookup(1.5, *a, reference=not bilinear, bilinear=bilinear)[0]
 
     tangents = [jnp.asarray(rng.normal(size=np.shape(a))) for a in args]
     for i in range(len(args)):  # one input at a time: the others' tangents are symbolic zeros

@@ -217,9 +217,7 @@ def image_fan_visibility_components(
     )
     if jnp.issubdtype(images.occluded.dtype, jnp.bool_):
         return _fan_lookup(images.shell, *args)[0]
-    if images.reads == "bilinear":  # continuous in every input: JAX's derivative is the exact one
-        return _fan_lookup(images.shell, *args, bilinear=True)[0]
-    return _coverage_lookup(images.shell, *args)
+    return _coverage_lookup(images.shell, images.reads == "bilinear", *args)
 
 
 def _fan_lookup(
@@ -234,8 +232,9 @@ def _fan_lookup(
     ``reference``, coverage is read through :func:`_read` instead and JAX's own derivative of the
     whole lookup applies: the same derivative (``tests/test_image_lookup_grad.py`` checks every
     input in float64), formed 2.6× slower (BENCHMARKS.md "Where the lookups' derivative goes").
-    With ``bilinear`` (float images, no ``tangents``) each image is read bilinearly between its
-    pixel centres (:func:`_bilinear`) instead.
+    With ``bilinear`` (float images) each image is read bilinearly between its pixel centres
+    (:func:`_bilinear`) instead, and the tangent is that of the bilinear reads (exact; no ramp at the
+    cut, which the forward pass does not have either).
     """
     live = tangents is not None
     d_occ, d_c, d_r, d_o, d_dx, d_dy, d_dz, d_ax = tangents if live else (None,) * 8
@@ -332,7 +331,8 @@ def _fan_lookup(
             v = (y + tan_a) * (ny / (2.0 * tan_a))
             k = (ii * p_n + jj)[:, None]
             if bilinear:
-                hit = _bilinear(flat, k, u, v, ny, nx) * front.astype(flat.dtype)
+                read, (ax, ay), corners = _bilinear(flat, k, u, v, ny, nx)
+                hit = read * front.astype(flat.dtype)
             elif coverage and reference:
                 hit = _read(flat, k, u, v, ny, nx) * front.astype(flat.dtype)
             else:
@@ -352,13 +352,23 @@ def _fan_lookup(
             d_x = _lin_sum(d_xl, None if d_zl is None else -x * d_zl)
             d_y = _lin_sum(d_yl, None if d_zl is None else -y * d_zl)
             terms = []
-            if d_x is not None or d_y is not None:
+            if bilinear:  # the bilinear read's own derivative, and the pixels' change read alike
+                c00, c10, c01, c11 = corners
+                if d_x is not None:
+                    slope = (1.0 - ay) * (c10 - c00) + ay * (c11 - c01)
+                    terms.append(slope * (d_x * inv) * (nx / (2.0 * tan_a)))
+                if d_y is not None:
+                    slope = (1.0 - ax) * (c01 - c00) + ax * (c11 - c10)
+                    terms.append(slope * (d_y * inv) * (ny / (2.0 * tan_a)))
+                if d_occ is not None:
+                    terms.append(_bilinear(d_occ.reshape(-1), k, u, v, ny, nx)[0].astype(dtype))
+            elif d_x is not None or d_y is not None:
                 near, idx = _padded_index(k, px, py, ny, nx)
                 for d_xy, table, scale in ((d_x, slopes[0], nx), (d_y, slopes[1], ny)):
                     if d_xy is not None:
                         slope = jnp.where(near, table[idx], 0.0).astype(dtype)
                         terms.append(slope * (d_xy * inv) * (scale / (2.0 * tan_a)))
-            if d_occ is not None:
+            if d_occ is not None and not bilinear:
                 terms.append(_gather(d_occ.reshape(-1), k, px, py, ny, nx).astype(dtype))
             d_hit = None if not terms else _lin_sum(*terms) * front.astype(dtype)
             d_w = _lin_sum(None if d_wi is None else d_wi * wj, None if d_wj is None else wi * d_wj)
@@ -394,7 +404,7 @@ def _fan_lookup(
         None if d_r is None else d_r * (1.0 - (r - rho) / r) / width,
         None if d_rho is None else -d_rho / width,
     )
-    if d_arg is not None:
+    if d_arg is not None and not bilinear:  # bilinear reads: the exact derivative, the cut has none
         d_out = d_out - jnp.where(ramping, (1.0 - vis) * d_arg, 0.0)
     return out, d_out
 
@@ -410,13 +420,14 @@ def _lin_sum(*terms):
     return out
 
 
-@partial(jax.custom_jvp, nondiff_argnums=(0,))
-def _coverage_lookup(shell, occluded, center, radius, origins, dx, dy, dz, axis):
-    """:func:`_fan_lookup`'s value for coverage images, with its written-out tangent."""
-    return _fan_lookup(shell, occluded, center, radius, origins, dx, dy, dz, axis)[0]
+@partial(jax.custom_jvp, nondiff_argnums=(0, 1))
+def _coverage_lookup(shell, bilinear, occluded, center, radius, origins, dx, dy, dz, axis):
+    """:func:`_fan_lookup`'s value for float images (read at the nearest pixel, or ``bilinear``),
+    with its written-out tangent."""
+    return _fan_lookup(shell, occluded, center, radius, origins, dx, dy, dz, axis, bilinear=bilinear)[0]
 
 
-def _coverage_lookup_jvp(shell, primals, tangents):
+def _coverage_lookup_jvp(shell, bilinear, primals, tangents):
     """The value and the written-out tangent. Where only the images, the centre or the radius move,
     the tangent is formed in a ``lax.cond`` branch of its own (a predicate that holds for any finite
     radius), which XLA:CPU compiles as a separate computation; formed in one program with the value,
@@ -426,8 +437,9 @@ def _coverage_lookup_jvp(shell, primals, tangents):
     (BENCHMARKS.md, "Where the lookups' derivative goes"): in a branch / in one program / JAX's
     derivative through :func:`_read`, the coverage's gradient 13.1 / 35.6 / 35.2 ms, the centre's
     46.3 / 68.1 / 66.5 ms, the radius's forward-mode tangent 9.6 / 28.6 / 39.9 ms; the light
-    position's gradient of the airplane's fractions 62.5 / 38.9 / 42.0 ms."""
-    out = _fan_lookup(shell, *primals)[0]
+    position's gradient of the airplane's fractions 62.5 / 38.9 / 42.0 ms. With ``bilinear`` the
+    tangent is the bilinear reads' exact one (equal to JAX's derivative of them, a test checks)."""
+    out = _fan_lookup(shell, *primals, bilinear=bilinear)[0]
     live = tuple(not isinstance(t, SymbolicZero) for t in tangents)
     if not any(live):
         return out, jnp.zeros_like(out)
@@ -436,7 +448,7 @@ def _coverage_lookup_jvp(shell, primals, tangents):
     def tangent(primals, given):
         it = iter(given)
         full = tuple(next(it) if i else None for i in live)
-        return _fan_lookup(shell, *primals, tangents=full)[1]
+        return _fan_lookup(shell, *primals, tangents=full, bilinear=bilinear)[1]
 
     if any(live[3:]):  # origins, directions or axes move
         return out, tangent(primals, given)
@@ -459,15 +471,16 @@ def _gather(flat, k, px, py, ny: int, nx: int):
 
 def _bilinear(flat, k, u, v, ny: int, nx: int):
     """The (G·N_y·N_x,) float images read bilinearly between pixel centres at the continuous pixel
-    coordinates (u, v) (pixel (i, j) spans [j, j + 1) × [i, i + 1); background 0 outside)."""
+    coordinates (u, v) (pixel (i, j) spans [j, j + 1) × [i, i + 1); background 0 outside):
+    ``(value, (a_x, a_y), (c00, c10, c01, c11))``, the weights toward the next column and row and
+    the four pixels read."""
     uu, vv = u - 0.5, v - 0.5
     x0, y0 = jnp.floor(uu), jnp.floor(vv)
     ax, ay = uu - x0, vv - y0
-    lo = (1.0 - ax) * _gather(flat, k, x0, y0, ny, nx) + ax * _gather(flat, k, x0 + 1.0, y0, ny, nx)
-    hi = (1.0 - ax) * _gather(flat, k, x0, y0 + 1.0, ny, nx) + ax * _gather(
-        flat, k, x0 + 1.0, y0 + 1.0, ny, nx
-    )
-    return (1.0 - ay) * lo + ay * hi
+    corners = tuple(_gather(flat, k, x0 + i, y0 + j, ny, nx) for j, i in ((0, 0), (0, 1), (1, 0), (1, 1)))
+    c00, c10, c01, c11 = corners
+    value = (1.0 - ay) * ((1.0 - ax) * c00 + ax * c10) + ay * ((1.0 - ax) * c01 + ax * c11)
+    return value, (ax, ay), corners
 
 
 @partial(jax.custom_jvp, nondiff_argnums=(4, 5))
