@@ -244,10 +244,11 @@ def test_coverage_lookups_batch_match_the_binary_ones_and_have_finite_gradients(
     assert all(x.shape == (*shape, 3) and np.all(np.isfinite(np.asarray(x))) for x in g)
 
 
-def test_coverage_lookup_gradient_is_finite_at_singular_points():
+@pytest.mark.parametrize("reads", ["nearest", "bilinear"])
+def test_coverage_lookup_gradient_is_finite_at_singular_points(reads):
     occ, v = _icosphere_world(subdiv=1)
     img = occlusion_images(v, occ.faces, (6, 8), (8, 8), 1.5)
-    cov = OcclusionImages(img.occluded.astype(jnp.float32), img.center, img.radius, img.shell)
+    cov = OcclusionImages(img.occluded.astype(jnp.float32), img.center, img.radius, img.shell, reads=reads)
     c, r = np.asarray(img.center), float(img.radius)
     cases = [  # origin, direction
         (c + [0.0, 0.0, -3.0], [0.0, 0.0, 1.0]),  # through the centre, entering at a pole
