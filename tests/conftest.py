@@ -7,10 +7,12 @@
 * Warnings are errors (pyproject.toml).
 * XLA's persistent compilation cache is on, in a folder made for this test run and shared by its
   xdist workers (see ``_compilation_cache``).
+* JAX's in-memory caches are dropped after each test module (``_release_compiled_code``).
 * ``JSHADOW_COMPILE_REPORT=FOLDER`` writes, per test, the seconds of tracing, lowering and XLA
   compilation (``_CompileReport``; ``python scripts/compile_report.py FOLDER`` sums them up).
 """
 
+import gc
 import json
 import os
 import shutil
@@ -162,6 +164,18 @@ settings.register_profile("dev", max_examples=15, deadline=None)
 settings.load_profile("ci" if os.environ.get("CI") else "dev")
 
 BATCH_SHAPES = [(), (1,), (3, 1, 2)]
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _release_compiled_code():
+    """Drop JAX's in-memory caches of compiled programs after each test module. A worker that keeps
+    every program of the suite runs out of memory maps for compiled code (``vm.max_map_count``,
+    65530 here: LLVM "Cannot allocate memory", then a segmentation fault in XLA's compilation, seen
+    on 2026-12-06 at 91 % of a full run); programs shared within a module are kept, and the
+    persistent cache turns recompiling the others into file reads."""
+    yield
+    jax.clear_caches()
+    gc.collect()
 
 
 @pytest.fixture
