@@ -202,14 +202,21 @@ def mesh_bsv(occ: MeshOccluder, t, scene: Scene, differentiable: bool = True) ->
     v = bsv_input_vertices(occ, _vertices_at(occ, t), m)
     if not differentiable:
         return bsv_mesh(v, occ.faces, method=m.bsv_method, **kw)
-    center, radius = bounding_sphere(v)
-    if _placed(occ, m):
-        # the same centre (up to one rounding), but with no dependence on the vertices: the box
-        # centre of the anchored vertices has an identically zero vertex derivative that reverse
-        # mode would still carry through every receiver's direction and SH rotation
-        center = jnp.asarray(occ.center, v.dtype)
+    center, radius = _bsv_sphere(occ, v, m)
     coeffs = _differentiable_coeffs(occ, v, faces, m, kw)
     return BSV(coeffs=coeffs, center=center, radius=radius, shell_radius=m.shell * radius)
+
+
+def _bsv_sphere(occ: MeshOccluder, v, m):
+    """The bounding sphere (centre, radius) of the sampler's input vertices ``v``, the centre taken
+    as ``occ.center`` itself where it is placed (:func:`_placed`): the same centre (up to one
+    rounding), but with no dependence on the vertices — the box centre of the anchored vertices has
+    an identically zero vertex derivative that reverse mode would still carry through every
+    receiver's direction and SH rotation."""
+    center, radius = bounding_sphere(v)
+    if _placed(occ, m):
+        center = jnp.asarray(occ.center, v.dtype)
+    return center, radius
 
 
 def _placed(occ: MeshOccluder, m) -> bool:
@@ -677,9 +684,7 @@ def _coverage_images(occ: MeshOccluder, v, m) -> OcclusionImages:
     es = _edgescan_slots(occ, faces, m)
     ss = _scan_grad_slots(occ, faces, m)
     cov = scan_coverage(v, faces, m.bsv_grid, m.directions, m.shell, slots=es, scan_slots=ss)
-    center, radius = bounding_sphere(v)
-    if _placed(occ, m):
-        center = jnp.asarray(occ.center, v.dtype)  # as mesh_bsv: no identically-zero vertex path
+    center, radius = _bsv_sphere(occ, v, m)
     return OcclusionImages(occluded=cov, center=center, radius=radius, shell=float(m.shell), reads="bilinear")
 
 
@@ -692,9 +697,7 @@ def _mesh_bsv_and_images(occ: MeshOccluder, v, faces: np.ndarray, m) -> tuple[BS
     coeffs, cov = bsv_and_coverage_edgescan_diff(
         v, faces, m.field_bands, m.bsv_grid, m.directions, m.shell, slots=es, grad_slots=grad_slots
     )
-    center, radius = bounding_sphere(v)
-    if _placed(occ, m):
-        center = jnp.asarray(occ.center, v.dtype)  # as mesh_bsv: no identically-zero vertex path
+    center, radius = _bsv_sphere(occ, v, m)
     bsv = BSV(coeffs=coeffs, center=center, radius=radius, shell_radius=m.shell * radius)
     return bsv, OcclusionImages(occluded=cov, center=center, radius=radius, shell=float(m.shell))
 
@@ -733,12 +736,8 @@ def scene_bsvs_and_images(
     bsvs, images = [], []
     for occ in scene.occluders:
         faces = _concrete(occ.faces) if isinstance(occ, MeshOccluder) else None
-        shared = (
-            m.light_images == "samples" and bsv_gradient_mode(m, faces) == "image"
-            if faces is not None
-            else False
-        )
-        if shared and _uses_edgescan(m, faces):
+        one_pass = faces is not None and m.light_images == "samples"  # coverage: its own scan pass
+        if one_pass and _uses_edgescan(m, faces) and bsv_gradient_mode(m, faces) == "image":
             v = bsv_input_vertices(occ, _vertices_at(occ, jnp.asarray(t, occ.unit_vertices.dtype)), m)
             if isinstance(v, jax.core.Tracer):
                 bsv, img = _mesh_bsv_and_images(occ, v, faces, m)

@@ -18,7 +18,8 @@ coverage* is the same along the pixel rows (the row scan), and the default is th
 Unlike the centre samples, the coverage is a continuous function of the vertices: a crossing that
 moves through a pixel centre swaps a unit of ``b`` for the same unit of its term, one that moves into
 the next pixel takes a term that has gone to 0, and crossings appear and vanish in pairs of opposite
-sign at the same height. It is piecewise smooth, and its derivative is exact and cheap: the
+sign at the same height. It is piecewise smooth, and its derivative is exact; only the boundary
+crossings carry a tangent (its cost is not measured apart from the lookups'): the
 integer structure (which crossing, which pixel, which side of the centre) is the scan's, on
 ``stop_gradient`` vertices, and each boundary crossing's height is recomputed differentiably from
 its edge's two vertices and the view's sample point (p = c(X) + shell·r(X)·u moves with them), so
@@ -46,9 +47,15 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
-from ._bsv_grad import _sample_points
-from ._edgescan import _cached_edge_table, _resolve, edgescan_slots
-from ._edgescan_scan import _compact_boundary, _scan_lists, edgescan_scan_slots
+from ._edgescan import _cached_edge_table, _grown_key, _resolve, _slot_bounds
+from ._edgescan_scan import (
+    _check_scan_slots,
+    _compact_boundary,
+    _crossing_edges,
+    _grow,
+    _scan_lists,
+    edgescan_scan_slots,
+)
 
 __all__ = ["scan_coverage"]
 
@@ -87,8 +94,9 @@ def scan_coverage(
         scan_slots: the scan lines' sizes (:func:`jshadow.visibility.edgescan_scan_slots`); None
             measures them on ``vertices``, which must then be concrete.
 
-    Concrete vertices that overflow the static sizes measure their own (remembered per mesh and
-    sizes for later calls) and run again; traced ones raise at run time (also under ``jax.jit``).
+    Concrete vertices that overflow the static sizes run again with them grown to 1.25× the counts
+    the pose needed (remembered for later calls with the same sizes, as the edge-scan's own
+    retries are); traced ones raise at run time (also under ``jax.jit``).
     """
     if scans not in SCANS:
         raise ValueError(f"scans must be one of {SCANS}, got {scans!r}")
@@ -105,38 +113,26 @@ def scan_coverage(
         scan_slots = edgescan_scan_slots(
             vertices, faces_np, grid, directions, shell, edge_table=table, slots=slots
         )
-    key = (faces_np.shape, hash(faces_np.tobytes()), grid, directions, shell)
-    slots, scan_slots = _larger((slots, scan_slots), _GROWN.get(key))
+    cap, _ = _slot_bounds(table, grid, directions)
+    scan_slots = _check_scan_slots(tuple(scan_slots), slots, cap, directions)
+    key = (_grown_key(table, grid, directions, shell, slots), scan_slots)
+    slots, scan_slots = _GROWN.get(key, (slots, scan_slots))
     if traced:
-        out, overflow = _coverage_jit(
+        out, overflow, _ = _coverage_jit(
             vertices, faces_j, table, grid, directions, shell, slots, scan_slots, scans
         )
         return eqx.error_if(out, overflow, _COVERAGE_OVERFLOW)
-    for _ in range(3):  # concrete: a pose that needs more than the sizes given measures its own
-        out, overflow = _coverage_jit(
+    while True:  # concrete: sizes a pose overflows grow to 1.25x its counts (the scanline's _grow)
+        out, overflow, need = _coverage_jit(
             vertices, faces_j, table, grid, directions, shell, slots, scan_slots, scans
         )
         if not bool(overflow):
             return out
-        own = edgescan_slots(vertices, faces_np, grid, directions, shell, edge_table=table)
-        own = (
-            own,
-            edgescan_scan_slots(vertices, faces_np, grid, directions, shell, edge_table=table, slots=own),
-        )
-        slots, scan_slots = _GROWN[key] = _larger((slots, scan_slots), own)
-    raise RuntimeError(_COVERAGE_OVERFLOW)
+        need = [int(n) for n in np.asarray(need)]
+        slots, scan_slots = _GROWN[key] = _grow(scan_slots, need, slots, cap, directions)
 
 
-_GROWN: dict = {}  # (faces, grid, directions, shell) -> the sizes grown for concrete poses that needed more
-
-
-def _larger(a, b):
-    """The element-wise larger of two (slots, scan_slots) pairs (``b`` may be None)."""
-    if b is None:
-        return tuple(int(x) for x in a[0]), tuple(int(x) for x in a[1])
-    return tuple(max(int(x), int(y)) for x, y in zip(a[0], b[0], strict=True)), tuple(
-        max(int(x), int(y)) for x, y in zip(a[1], b[1], strict=True)
-    )
+_GROWN: dict = {}  # (configuration, sizes given) -> the sizes they grew to on a concrete pose
 
 
 def _coverage(x, faces, table, grid, directions, shell, slots, scan_slots, scans):
@@ -147,8 +143,8 @@ def _coverage(x, faces, table, grid, directions, shell, slots, scan_slots, scans
         xs, faces, table, grid, directions, shell, slots, scan_slots[:4], 1, with_counts=True
     )
     cr, sigma, n_boundary = _compact_boundary(cr, sigma, scan_slots[4])
-    limit = jnp.asarray([*slots, *scan_slots[:4]], jnp.int32)
-    overflow = jnp.any(need.astype(jnp.int32) > limit) | (n_boundary > scan_slots[4])
+    need = jnp.concatenate([need, n_boundary[None]]).astype(jnp.int32)  # as the scanline's _primal
+    overflow = jnp.any(need > jnp.asarray([*slots, *scan_slots], jnp.int32))
     tan_a = 1.0 / math.sqrt(shell * shell - 1.0)
     tr = cr["tr"]
     lines = jnp.where(tr, nx, ny)  # pixels along this crossing's scan line
@@ -172,7 +168,7 @@ def _coverage(x, faces, table, grid, directions, shell, slots, scan_slots, scans
     col = jnp.zeros(size, x.dtype).at[flat].add(jnp.where(tr, 0.0, term))
     row = jnp.zeros(size, x.dtype).at[flat].add(jnp.where(tr, term, 0.0))
     extra = {"both": 0.5 * (col + row), "columns": col, "rows": row}[scans]
-    return (binary + extra).reshape(grid[0], grid[1], ny, nx), overflow
+    return (binary + extra).reshape(grid[0], grid[1], ny, nx), overflow, need
 
 
 _coverage_jit = jax.jit(_coverage, static_argnums=(3, 4, 5, 6, 7, 8))
@@ -180,33 +176,9 @@ _coverage_jit = jax.jit(_coverage, static_argnums=(3, 4, 5, 6, 7, 8))
 
 def _height_tangent(x, cr, slot_all, table, grid, directions, shell):
     """Zero in value, with the derivative of each crossing's height along its line (C,): the height
-    of its edge's line at the line's centre coordinate, recomputed from the edge's two vertices and
-    the view's sample point and frame (as the scanline derivative's terms are)."""
-    ny, nx = directions
-    views = grid[0] * grid[1]
-    tan_a = 1.0 / math.sqrt(shell * shell - 1.0)
-    tr = cr["tr"]
-    s = slot_all[cr["sid"]]
-    edge, view = s // views, s % views
-    va, vb = table.a[edge], table.b[edge]
-    points, frames = _sample_points(x, grid, shell)
-    f = frames[view]  # (C, 3, 3) world = F @ local
-    f = jnp.where(tr[:, None, None], f[:, :, jnp.array([1, 0, 2])], f)  # rows: local' = (y, x, z)
-    qa = jnp.einsum("cji,cj->ci", f, x[va] - points[view])
-    qb = jnp.einsum("cji,cj->ci", f, x[vb] - points[view])
-    valid = cr["valid"] & (qa[:, 2] > 0) & (qb[:, 2] > 0)
-    qaz = jnp.where(valid, qa[:, 2], 1.0)
-    qbz = jnp.where(valid, qb[:, 2], 1.0)
-    xa, ya, xb, yb = qa[:, 0] / qaz, qa[:, 1] / qaz, qb[:, 0] / qbz, qb[:, 1] / qbz
-    run = xb - xa
-    crosses = valid & (run != 0)
-    run = jnp.where(crosses, run, 1.0)  # double where: no division for padding
-    slope = (yb - ya) / run
-    # an edge within 1e-6 of parallel to its line moves its crossing without bound: its tangent is
-    # dropped (as the scanline derivative drops it), so that no overflow reaches the derivative
-    crosses = crosses & (jnp.abs(slope) < 1e6)
-    slope = jnp.where(crosses, slope, 0.0)
-    lines = jnp.where(tr, ny, nx)  # lines of this scan (columns: N_x; rows: N_y)
-    xj = (cr["col"].astype(x.dtype) + 0.5) * (2.0 * tan_a / lines) - tan_a
-    y = ya + (xj - xa) * slope
-    return jnp.where(crosses, y - jax.lax.stop_gradient(y), 0.0)
+    of its edge's line at the line's centre coordinate (:func:`._edgescan_scan._crossing_edges`, as
+    the scanline derivative's terms recompute it; no tangent for an edge within 1e-6 of parallel
+    to its line)."""
+    e = _crossing_edges(x, cr, slot_all, table, grid=grid, directions=directions, shell=shell)
+    y = e.ya + (e.xj - e.xa) * e.slope
+    return jnp.where(e.crosses, y - jax.lax.stop_gradient(y), 0.0)

@@ -52,6 +52,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from functools import lru_cache, partial
+from typing import NamedTuple
 
 import equinox as eqx
 import jax
@@ -204,15 +205,29 @@ def _compact_boundary(cr, sigma, size):
     return out, jnp.where(ok, sigma[p], 0.0), count
 
 
-def _terms(x, cr, sigma, slot, table, *, grid, directions, shell, refine):
-    """Primal per-crossing terms of the tangent: vertex ids ``va, vb`` (C,), view (C,), ``fa, fb``
-    (C, 3) world vectors with ``share·σ·Δ·ẏ_c = fa·(δX_a − δp) + fb·(δX_b − δp)`` (for the row scan
-    x and y trade places), and the linear splat of each crossing onto its line's table positions
-    (:func:`_np_line_basis`): ``idx`` (C, 2) within a view's table, ``lin`` (C, 2)."""
+class _CrossingEdges(NamedTuple):
+    """Per crossing (C,), its edge in its view's frame (for the row scan x and y trade places)."""
+
+    va: Array  # the edge's vertex ids
+    vb: Array
+    view: Array
+    frame: Array  # (C, 3, 3) world = frame @ local
+    qaz: Array  # the end points' depths (1 where the crossing is not valid)
+    qbz: Array
+    xa: Array  # the first end point in the image
+    ya: Array
+    run: Array  # x_b − x_a (1 where it does not cross)
+    slope: Array  # along the scan (0 where it does not cross)
+    crosses: Array  # valid, not parallel to its line within 1e-6 (its tangent is dropped)
+    xj: Array  # the crossing line's centre coordinate
+
+
+def _crossing_edges(x, cr, slot, table, *, grid, directions, shell) -> _CrossingEdges:
+    """The edge of each crossing recomputed from its two vertices and its view's sample point and
+    frame (differentiable in ``x``; :func:`_terms`, and the coverage images' crossing heights)."""
     ny, nx = directions
     views = grid[0] * grid[1]
     tan_a = 1.0 / math.sqrt(shell * shell - 1.0)
-    dtype = x.dtype
     tr = cr["tr"]
     s = slot[cr["sid"]]
     edge, view = s // views, s % views
@@ -235,9 +250,24 @@ def _terms(x, cr, sigma, slot, table, *, grid, directions, shell, refine):
     crosses = crosses & (jnp.abs(slope) < 1e6)
     slope = jnp.where(crosses, slope, 0.0)
     lines = jnp.where(tr, ny, nx)  # lines of this scan (columns: N_x; rows: N_y)
+    xj = (cr["col"].astype(x.dtype) + 0.5) * (2.0 * tan_a / lines) - tan_a
+    return _CrossingEdges(va, vb, view, f, qaz, qbz, xa, ya, run, slope, crosses, xj)
+
+
+def _terms(x, cr, sigma, slot, table, *, grid, directions, shell, refine):
+    """Primal per-crossing terms of the tangent: vertex ids ``va, vb`` (C,), view (C,), ``fa, fb``
+    (C, 3) world vectors with ``share·σ·Δ·ẏ_c = fa·(δX_a − δp) + fb·(δX_b − δp)`` (for the row scan
+    x and y trade places), and the linear splat of each crossing onto its line's table positions
+    (:func:`_np_line_basis`): ``idx`` (C, 2) within a view's table, ``lin`` (C, 2)."""
+    ny, nx = directions
+    tan_a = 1.0 / math.sqrt(shell * shell - 1.0)
+    dtype = x.dtype
+    tr = cr["tr"]
+    e = _crossing_edges(x, cr, slot, table, grid=grid, directions=directions, shell=shell)
+    va, vb, view, f, qaz, qbz, xa, ya, run, slope, crosses, xj = e
+    lines = jnp.where(tr, ny, nx)  # lines of this scan (columns: N_x; rows: N_y)
     heights = jnp.where(tr, nx, ny) * refine  # table intervals along one line
     spacing = 2.0 * tan_a / lines
-    xj = (cr["col"].astype(dtype) + 0.5) * spacing - tan_a
     t = jnp.clip((xj - xa) / run, 0.0, 1.0)
     nrm = jnp.stack([-slope, jnp.ones_like(slope), slope * xa - ya], axis=-1)
     fn = jnp.einsum("cij,cj->ci", f, nrm)  # F n (world)
