@@ -338,3 +338,16 @@ def test_written_out_tangent_is_the_reference_derivative(shared_dirs, bilinear, 
     for a, b, arg in zip(g1, g0, args, strict=True):
         assert a.shape == arg.shape
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), atol=1e-12 * float(jnp.max(jnp.abs(b))))
+    # the images, the centre and the radius together, the rays fixed (a mesh's vertices and its
+    # placement: for bilinear reads the tangent of _bilinear_placement_tangent)
+    rays = args[3:]
+    _, t1 = jax.jvp(lambda *p: ours(*p, *rays), args[:3], tuple(tangents[:3]))
+    _, t0 = jax.jvp(lambda *p: reference(*p, *rays), args[:3], tuple(tangents[:3]))
+    np.testing.assert_allclose(np.asarray(t1), np.asarray(t0), atol=1e-12 * float(jnp.max(jnp.abs(t0))))
+    for argnums in ((0,), (1,), (2,), (0, 2), (0, 1, 2)):
+        g1 = jax.grad(lambda *p: jnp.sum(w * ours(*p, *rays)), argnums)(*args[:3])
+        g0 = jax.grad(lambda *p: jnp.sum(w * reference(*p, *rays)), argnums)(*args[:3])
+        for a, b in zip(g1, g0, strict=True):
+            scale = float(jnp.max(jnp.abs(b)))
+            assert scale > 0, argnums
+            np.testing.assert_allclose(np.asarray(a), np.asarray(b), atol=1e-12 * scale, err_msg=str(argnums))

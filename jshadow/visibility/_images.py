@@ -64,7 +64,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 from .._numerics import safe_atan2, safe_div, safe_sqrt
 from ..geometry import bounding_sphere
 from ._bsv import BSV
-from ._edgescan import bsv_and_occlusion_edgescan, edgescan_occlusion
+from ._edgescan import always, bsv_and_occlusion_edgescan, edgescan_occlusion, staged
 from ._frames import bsv_grid_angles
 
 __all__ = [
@@ -250,18 +250,7 @@ def _fan_lookup(
     rr = rx * rx + ry * ry + rz * rz
 
     def grid(rel, axis, big_r):
-        """Continuous grid coordinates (gi, gj) of the shell entry of each origin's axis (N,)."""
-        rx, ry, rz = rel[:, 0], rel[:, 1], rel[:, 2]
-        ax, ay, az = axis[:, 0], axis[:, 1], axis[:, 2]
-        b0 = rx * ax + ry * ay + rz * az
-        rr = rx * rx + ry * ry + rz * rz
-        t0 = -b0 - safe_sqrt(b0 * b0 - (rr - big_r * big_r))
-        # an axis that misses the shell: its point nearest c (t0 = −b0), whose direction is used
-        ex, ey, ez = rx + t0 * ax, ry + t0 * ay, rz + t0 * az
-        u_z = jnp.clip(safe_div(ez, safe_sqrt(ex * ex + ey * ey + ez * ez)), -1.0, 1.0)
-        theta = safe_atan2(safe_sqrt(1.0 - u_z * u_z), u_z)
-        phi = safe_atan2(ey, ex)
-        return theta * (t_n / math.pi) - 0.5, phi * (p_n / (2.0 * math.pi))
+        return _axis_grid(rel, axis, big_r, t_n, p_n)
 
     d_rel = _lin_sum(d_o, None if d_c is None else -d_c)
     d_rel = None if d_rel is None else jnp.broadcast_to(d_rel, rel.shape)  # a centre's tangent alone is (3,)
@@ -318,12 +307,7 @@ def _fan_lookup(
             wj = fj if dj else 1.0 - fj
             d_wj = None if d_gj is None else (d_gj if dj else -d_gj)
             sp, cp = sin_p[jj][:, None], cos_p[jj][:, None]
-            # the grid point's frame (bsv_frames): x = (ct cp, ct sp, −st), y = (sp, −cp, 0), z = −u;
-            # local coordinates of q − R·u, where frameᵀ u = (0, 0, −1)
-            h = qx * cp + qy * sp
-            xl = h * ct - qz * st
-            yl = qx * sp - qy * cp
-            zl = big_r - (h * st + qz * ct)
+            xl, yl, zl = _grid_point_coordinates(qx, qy, qz, ct, st, cp, sp, big_r)
             front = zl > 0
             inv = safe_div(1.0, zl)
             x, y = xl * inv, yl * inv
@@ -409,6 +393,30 @@ def _fan_lookup(
     return out, d_out
 
 
+def _axis_grid(rel, axis, big_r, t_n: int, p_n: int):
+    """Continuous grid coordinates (gi, gj) (N,) of the shell entry of each origin's axis (origins
+    relative to the centre, ``rel`` (N, 3); unit ``axis`` (N, 3); shell radius ``big_r``)."""
+    rx, ry, rz = rel[:, 0], rel[:, 1], rel[:, 2]
+    ax, ay, az = axis[:, 0], axis[:, 1], axis[:, 2]
+    b0 = rx * ax + ry * ay + rz * az
+    rr = rx * rx + ry * ry + rz * rz
+    t0 = -b0 - safe_sqrt(b0 * b0 - (rr - big_r * big_r))
+    # an axis that misses the shell: its point nearest c (t0 = −b0), whose direction is used
+    ex, ey, ez = rx + t0 * ax, ry + t0 * ay, rz + t0 * az
+    u_z = jnp.clip(safe_div(ez, safe_sqrt(ex * ex + ey * ey + ez * ez)), -1.0, 1.0)
+    theta = safe_atan2(safe_sqrt(1.0 - u_z * u_z), u_z)
+    phi = safe_atan2(ey, ex)
+    return theta * (t_n / math.pi) - 0.5, phi * (p_n / (2.0 * math.pi))
+
+
+def _grid_point_coordinates(qx, qy, qz, ct, st, cp, sp, big_r):
+    """Local coordinates ``(x_l, y_l, z_l)`` of the focal point q relative to the grid point R·u at
+    polar angle θ, azimuth φ (their sines and cosines): the frame of :func:`bsv_frames`, x = (ct cp,
+    ct sp, −st), y = (sp, −cp, 0), z = −u, applied to q − R·u (frameᵀ u = (0, 0, −1))."""
+    h = qx * cp + qy * sp
+    return h * ct - qz * st, qx * sp - qy * cp, big_r - (h * st + qz * ct)
+
+
 def _lin_sum(*terms):
     """The sum of the terms that are not None (None if all are): tangents with symbolic zeros."""
     terms = [t for t in terms if t is not None]
@@ -452,8 +460,172 @@ def _coverage_lookup_jvp(shell, bilinear, primals, tangents):
 
     if any(live[3:]):  # origins, directions or axes move
         return out, tangent(primals, given)
+    if bilinear:
+        return out, _bilinear_placement_tangent(shell, primals, tangents[:3])
     d_out = lax.cond(primals[2] != jnp.inf, tangent, lambda p, g: jnp.zeros_like(out), primals, given)
     return out, d_out
+
+
+def _bilinear_placement_tangent(shell, primals, tangents):
+    """The bilinear lookups' tangent where only the images, the centre or the radius move, as a
+    linear map with coefficients formed from the primals: ``α·δr + β·δc + Σ_g W_g·δimages[corners_g]``
+    with α, β (N, K) per ray and W_g the four corner weights of each grid point's read. In reverse
+    mode JAX transposes that to two reductions and four scatters of 4-vectors (the corners of a read
+    as one row of a table of shifted images), where the transpose of :func:`_fan_lookup`'s
+    written-out tangent kept every intermediate of the four reads (BENCHMARKS.md, "Coverage
+    images"). The same derivative (``tests/test_image_lookup_grad.py``)."""
+    d_occ, d_c, d_r = (None if isinstance(t, SymbolicZero) else t for t in tangents)
+    # a stage of its own (in one program with the value and the rest, XLA:CPU fused the four
+    # reads' coefficients into their consumers: the radius's gradient 3.5× slower)
+    coefficients = partial(
+        _bilinear_coefficients,
+        shell,
+        need_occ=d_occ is not None,
+        need_c=d_c is not None,
+        need_r=d_r is not None,
+    )
+    coef, reads = staged(always(primals[2]), coefficients, *primals)
+    occluded = primals[0]
+    dtype = primals[3].dtype
+    terms = []
+    if d_r is not None:
+        terms.append(coef["r"] * d_r.astype(dtype))
+    if d_c is not None:
+        d_c = d_c.astype(dtype)
+        terms.append(coef["c"][0] * d_c[0] + coef["c"][1] * d_c[1] + coef["c"][2] * d_c[2])
+    if d_occ is not None:
+        table = _corner_table(d_occ.astype(occluded.dtype))
+        for base, weights in reads:
+            terms.append(jnp.sum(table[base] * weights, axis=-1).astype(dtype))
+    return _lin_sum(*terms)
+
+
+def _corner_table(images):
+    """(G, N_y, N_x) images, padded by one pixel of background, as rows of the four pixels
+    ``(p, p + 1, p + W, p + W + 1)`` at each flat padded index p (W = N_x + 2): a bilinear read's
+    corners in one gather (:func:`_bilinear_coefficients`'s ``base``)."""
+    t_n, p_n, ny, nx = images.shape
+    wid = nx + 2
+    flat = jnp.pad(images.reshape(-1, ny, nx), ((0, 0), (1, 1), (1, 1))).reshape(-1)
+    flat = jnp.concatenate([flat, jnp.zeros(wid + 1, flat.dtype)])
+    size = flat.shape[0] - wid - 1
+    return jnp.stack([flat[:size], flat[1 : size + 1], flat[wid : size + wid], flat[wid + 1 :]], axis=-1)
+
+
+def _bilinear_coefficients(
+    shell, occluded, center, radius, origins, dx, dy, dz, axis, *, need_occ, need_c, need_r
+):
+    """The coefficients of :func:`_bilinear_placement_tangent`: a dict with ``"r"`` (N, K) and
+    ``"c"`` (three (N, K)), where needed, and per grid point ``(base, weights)``, the flat index
+    (N, K) into :func:`_corner_table` and the corner weights (N, K, 4) of the images' own change.
+    Derived from :func:`_fan_lookup`'s bilinear tangent: the read points move with the shell
+    radius R = shell·r and with the centre through the focal point q, the bilinear weights of the
+    four grid points move with the shell entry of the axis; the cut at the bounding sphere has no
+    derivative."""
+    dtype = origins.dtype
+    t_n, p_n, ny, nx = occluded.shape
+    flat = occluded.reshape(-1)
+    r = radius
+    big_r = shell * r
+    tan_a = math.tan(math.asin(1.0 / shell))
+    sx, sy = nx / (2.0 * tan_a), ny / (2.0 * tan_a)
+    rel = origins - center
+    rx, ry, rz = rel[:, 0], rel[:, 1], rel[:, 2]
+    rr = rx * rx + ry * ry + rz * rz
+    gi, gj = _axis_grid(rel, axis, big_r, t_n, p_n)
+    # the grid coordinates' derivatives per origin (N,): along R, and along each component of rel
+    d_grid = {}
+    if need_r:
+        d_grid["r"] = jax.jvp(
+            lambda b: _axis_grid(rel, axis, b, t_n, p_n), (big_r,), (jnp.ones_like(big_r),)
+        )[1]
+    if need_c:
+        for c in range(3):
+            e = jnp.zeros_like(rel).at[:, c].set(1.0)
+            d_grid[c] = jax.jvp(lambda x: _axis_grid(x, axis, big_r, t_n, p_n), (rel,), (e,))[1]
+    i0, j0 = jnp.floor(gi), jnp.floor(gj)
+    fi, fj = gi - i0, gj - j0
+    i0, j0 = i0.astype(jnp.int32), j0.astype(jnp.int32)
+    th, ph = bsv_grid_angles(t_n, p_n, dtype)
+    sin_t, cos_t, sin_p, cos_p = jnp.sin(th), jnp.cos(th), jnp.sin(ph), jnp.cos(ph)
+    b = rx[:, None] * dx + ry[:, None] * dy + rz[:, None] * dz
+    meets = (b * b - (rr[:, None] - r * r) > 0) & (b < 0)
+    qx, qy, qz = rx[:, None] - b * dx, ry[:, None] - b * dy, rz[:, None] - b * dz
+    coef_r = jnp.zeros(b.shape, dtype) if need_r else None
+    coef_q = [jnp.zeros(b.shape, dtype) for _ in range(3)] if need_c else None  # along q
+    coef_g = [jnp.zeros(b.shape, dtype) for _ in range(3)] if need_c else None  # the grid weights
+    reads = []
+    wid = nx + 2
+    for di in (0, 1):
+        ii = jnp.clip(i0 + di, 0, t_n - 1)
+        wi = fi if di else 1.0 - fi
+        sgn_i = 1.0 if di else -1.0
+        st, ct = sin_t[ii][:, None], cos_t[ii][:, None]
+        for dj in (0, 1):
+            jj = jnp.mod(j0 + dj, p_n)
+            wj = fj if dj else 1.0 - fj
+            sgn_j = 1.0 if dj else -1.0
+            sp, cp = sin_p[jj][:, None], cos_p[jj][:, None]
+            k = (ii * p_n + jj)[:, None]
+            w = (wi * wj)[:, None]
+
+            def read_slopes(qx, qy, qz, ct, st, cp, sp, k, w):
+                """The read's pixel coordinates (u, v), its 1 − hit, and (a_x, a_y, a_z): the value's
+                change per unit change of x_l, y_l and −z_l·(x, y)."""
+                xl, yl, zl = _grid_point_coordinates(qx, qy, qz, ct, st, cp, sp, big_r)
+                front = (zl > 0).astype(dtype)
+                inv = safe_div(1.0, zl)
+                x, y = xl * inv, yl * inv
+                u, v = (x + tan_a) * sx, (y + tan_a) * sy
+                read, (ax, ay), (c00, c10, c01, c11) = _bilinear(flat, k, u, v, ny, nx)
+                # −w·front·(slope of the read along x, y) per unit motion of the image coordinates
+                gx = -w * front * ((1.0 - ay) * (c10 - c00) + ay * (c11 - c01)).astype(dtype) * sx
+                gy = -w * front * ((1.0 - ax) * (c01 - c00) + ax * (c11 - c10)).astype(dtype) * sy
+                # x = x_l / z_l: δx = (δx_l − x·δz_l)·inv, and alike for y
+                a_x, a_y = gx * inv, gy * inv
+                return u, v, front, 1.0 - read.astype(dtype) * front, a_x, a_y, a_x * x + a_y * y
+
+            # for the three centre coefficients each grid point's ingredients are a stage (buffers):
+            # fused into them, XLA:CPU recomputed the four reads for each (3.7× slower); for the
+            # radius alone the stage costs more than it saves
+            ingredients = partial(staged, always(big_r), read_slopes) if need_c else read_slopes
+            u, v, front, free, a_x, a_y, a_z = ingredients(qx, qy, qz, ct, st, cp, sp, k, w)
+
+            def weight_motion(d_gi, d_gj, wi=wi, wj=wj, sgn_i=sgn_i, sgn_j=sgn_j, free=free):
+                return (sgn_i * d_gi * wj + wi * sgn_j * d_gj)[:, None] * free
+
+            if need_r:  # q is fixed; z_l moves by δR
+                coef_r = coef_r + weight_motion(*d_grid["r"]) - a_z
+            if need_c:  # x_l, y_l, z_l move with q (the grid point's frame rows)
+                dxl = (ct * cp, ct * sp, -st)
+                dyl = (sp, -cp, None)
+                dzl = (-st * cp, -st * sp, -ct)
+                for c in range(3):
+                    term = a_x * dxl[c] - a_z * dzl[c]
+                    coef_q[c] = coef_q[c] + (term if dyl[c] is None else term + a_y * dyl[c])
+                    coef_g[c] = coef_g[c] + weight_motion(*d_grid[c])
+            if need_occ:
+                uu, vv = u - 0.5, v - 0.5
+                x0, y0 = jnp.floor(uu), jnp.floor(vv)
+                fx, fy = uu - x0, vv - y0
+                near = (x0 >= -1) & (x0 <= nx - 1) & (y0 >= -1) & (y0 <= ny - 1) & meets
+                base = (k * (ny + 2) + jnp.clip(y0, -1, ny - 1).astype(jnp.int32) + 1) * wid
+                base = base + jnp.clip(x0, -1, nx - 1).astype(jnp.int32) + 1
+                scale = jnp.where(near, -w * front, 0.0)
+                weights = (
+                    jnp.stack([(1.0 - fx) * (1.0 - fy), fx * (1.0 - fy), (1.0 - fx) * fy, fx * fy], axis=-1)
+                    * scale[..., None]
+                )
+                reads.append((base, weights.astype(occluded.dtype)))
+    coef = {}
+    if need_r:
+        coef["r"] = shell * jnp.where(meets, coef_r, 0.0)
+    if need_c:  # δrel = −δc moves q by δrel − (δrel·d) d
+        proj = coef_q[0] * dx + coef_q[1] * dy + coef_q[2] * dz
+        coef["c"] = tuple(
+            -jnp.where(meets, coef_q[c] - proj * d + coef_g[c], 0.0) for c, d in enumerate((dx, dy, dz))
+        )
+    return coef, reads
 
 
 _coverage_lookup.defjvp(_coverage_lookup_jvp, symbolic_zeros=True)
