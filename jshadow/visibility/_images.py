@@ -24,10 +24,10 @@ own change (the silhouette's boundary integral over the pixel, when the vertices
 read point's motion across the image times the image's slope there (central differences of the
 neighbouring pixels; :func:`_read`). The cut at the bounding sphere (rays whose line misses it are
 free) gets the same treatment, its jump spread over one pixel's width at the cone's edge. The
-tangent of all of it is written out (:func:`_fan_lookup`; :func:`_coverage_lookup` forms it in a
-branch of its own where only the images, centre or radius move); it equals JAX's derivative of
-the same lookups read through :func:`_read` and is formed 2.6× faster (the coverage's gradient on
-the egg's 16384 receivers × 32 rays: 15.3 against 39.2 ms). Summed
+tangent of all of it is written out (:func:`_fan_lookup`; where only the images, centre or
+radius move, :func:`_placement_tangent` forms it as a linear map with precomputed coefficients);
+it equals JAX's derivative of the same lookups read through :func:`_read` and is formed several
+times faster (BENCHMARKS.md, "Where the lookups' derivative goes" and "Coverage images"). Summed
 over many rays (a light's cap, many receivers) this is the derivative of the shadow; per ray it is
 rough. Measured (``tests/test_image_lookup_grad.py``): a mesh sphere's gradients with respect to
 the light's centre, its own centre and radius 1.7 %, 8 % and 4.6 % from the closed-form lens's at
@@ -436,17 +436,14 @@ def _coverage_lookup(shell, bilinear, occluded, center, radius, origins, dx, dy,
 
 
 def _coverage_lookup_jvp(shell, bilinear, primals, tangents):
-    """The value and the written-out tangent. Where only the images, the centre or the radius move,
-    the tangent is formed in a ``lax.cond`` branch of its own (a predicate that holds for any finite
-    radius), which XLA:CPU compiles as a separate computation; formed in one program with the value,
-    the lookups' four grid points no longer compile to a few fused passes. Where the rays' own
-    inputs move (origins, directions, axes: a light's position), the same program is faster.
-    Measured on the egg's 16384 receivers × 32 rays, both versions loaded in one process
-    (BENCHMARKS.md, "Where the lookups' derivative goes"): in a branch / in one program / JAX's
-    derivative through :func:`_read`, the coverage's gradient 13.1 / 35.6 / 35.2 ms, the centre's
-    46.3 / 68.1 / 66.5 ms, the radius's forward-mode tangent 9.6 / 28.6 / 39.9 ms; the light
-    position's gradient of the airplane's fractions 62.5 / 38.9 / 42.0 ms. With ``bilinear`` the
-    tangent is the bilinear reads' exact one (equal to JAX's derivative of them, a test checks)."""
+    """The value and the written-out tangent. Where only the images, the centre or the radius move
+    (a mesh's vertices and its placement), the tangent is a linear map with coefficients formed
+    from the primals (:func:`_placement_tangent`), which reverse mode transposes to a few reductions
+    and scatters; the frames' value_and_grad through the images 0.47–0.73× the time of the tangent
+    written out in a ``lax.cond`` branch before it (BENCHMARKS.md, "Coverage images"). Where the
+    rays' own inputs move (origins, directions, axes: a light's position), the written-out tangent
+    of :func:`_fan_lookup` in the same program as the value. With ``bilinear`` the tangent is the
+    bilinear reads' exact one (equal to JAX's derivative of them, a test checks)."""
     out = _fan_lookup(shell, *primals, bilinear=bilinear)[0]
     live = tuple(not isinstance(t, SymbolicZero) for t in tangents)
     if not any(live):
@@ -460,26 +457,25 @@ def _coverage_lookup_jvp(shell, bilinear, primals, tangents):
 
     if any(live[3:]):  # origins, directions or axes move
         return out, tangent(primals, given)
-    if bilinear:
-        return out, _bilinear_placement_tangent(shell, primals, tangents[:3])
-    d_out = lax.cond(primals[2] != jnp.inf, tangent, lambda p, g: jnp.zeros_like(out), primals, given)
-    return out, d_out
+    return out, _placement_tangent(shell, bilinear, primals, tangents[:3])
 
 
-def _bilinear_placement_tangent(shell, primals, tangents):
-    """The bilinear lookups' tangent where only the images, the centre or the radius move, as a
-    linear map with coefficients formed from the primals: ``α·δr + β·δc + Σ_g W_g·δimages[corners_g]``
-    with α, β (N, K) per ray and W_g the four corner weights of each grid point's read. In reverse
-    mode JAX transposes that to two reductions and four scatters of 4-vectors (the corners of a read
-    as one row of a table of shifted images), where the transpose of :func:`_fan_lookup`'s
-    written-out tangent kept every intermediate of the four reads (BENCHMARKS.md, "Coverage
-    images"). The same derivative (``tests/test_image_lookup_grad.py``)."""
+def _placement_tangent(shell, bilinear, primals, tangents):
+    """The lookups' tangent where only the images, the centre or the radius move, as a linear map
+    with coefficients formed from the primals: ``α·δr + β·δc + Σ_g W_g·δimages[pixels_g]`` with α, β
+    (N, K) per ray and W_g the weights of each grid point's read (four corners for ``bilinear``
+    reads, one pixel otherwise). In reverse mode JAX transposes that to reductions and four
+    scatters (of 4-vectors for bilinear reads: a read's corners are one row of a table of shifted
+    images), where the transpose of :func:`_fan_lookup`'s written-out tangent kept every
+    intermediate of the four reads (BENCHMARKS.md, "Coverage images"). The same derivative
+    (``tests/test_image_lookup_grad.py``)."""
     d_occ, d_c, d_r = (None if isinstance(t, SymbolicZero) else t for t in tangents)
     # a stage of its own (in one program with the value and the rest, XLA:CPU fused the four
     # reads' coefficients into their consumers: the radius's gradient 3.5× slower)
     coefficients = partial(
-        _bilinear_coefficients,
+        _placement_coefficients,
         shell,
+        bilinear,
         need_occ=d_occ is not None,
         need_c=d_c is not None,
         need_r=d_r is not None,
@@ -494,9 +490,12 @@ def _bilinear_placement_tangent(shell, primals, tangents):
         d_c = d_c.astype(dtype)
         terms.append(coef["c"][0] * d_c[0] + coef["c"][1] * d_c[1] + coef["c"][2] * d_c[2])
     if d_occ is not None:
-        table = _corner_table(d_occ.astype(occluded.dtype))
+        d_occ = d_occ.astype(occluded.dtype)
+        t_n, p_n, ny, nx = occluded.shape
+        table = _corner_table(d_occ) if bilinear else _padded_tables(d_occ.reshape(-1), ny, nx)[0]
         for base, weights in reads:
-            terms.append(jnp.sum(table[base] * weights, axis=-1).astype(dtype))
+            read = jnp.sum(table[base] * weights, axis=-1) if bilinear else table[base] * weights
+            terms.append(read.astype(dtype))
     return _lin_sum(*terms)
 
 
@@ -512,16 +511,18 @@ def _corner_table(images):
     return jnp.stack([flat[:size], flat[1 : size + 1], flat[wid : size + wid], flat[wid + 1 :]], axis=-1)
 
 
-def _bilinear_coefficients(
-    shell, occluded, center, radius, origins, dx, dy, dz, axis, *, need_occ, need_c, need_r
+def _placement_coefficients(
+    shell, bilinear, occluded, center, radius, origins, dx, dy, dz, axis, *, need_occ, need_c, need_r
 ):
-    """The coefficients of :func:`_bilinear_placement_tangent`: a dict with ``"r"`` (N, K) and
-    ``"c"`` (three (N, K)), where needed, and per grid point ``(base, weights)``, the flat index
-    (N, K) into :func:`_corner_table` and the corner weights (N, K, 4) of the images' own change.
-    Derived from :func:`_fan_lookup`'s bilinear tangent: the read points move with the shell
-    radius R = shell·r and with the centre through the focal point q, the bilinear weights of the
-    four grid points move with the shell entry of the axis; the cut at the bounding sphere has no
-    derivative."""
+    """The coefficients of :func:`_placement_tangent`: a dict with ``"r"`` (N, K) and ``"c"``
+    (three (N, K)), where needed, and per grid point ``(base, weights)``: for ``bilinear`` reads the
+    flat index (N, K) into :func:`_corner_table` and the corner weights (N, K, 4), otherwise the
+    index into :func:`_padded_tables` and the weight (N, K) of the images' own change. Derived from
+    :func:`_fan_lookup`'s tangent: the read points move with the shell radius R = shell·r and with
+    the centre through the focal point q (times the bilinear read's own slopes, or the images'
+    central-difference slopes at the nearest pixel), the weights of the four grid points move with
+    the shell entry of the axis, and for nearest reads the cut at the bounding sphere has its ramp
+    (bilinear reads: no derivative at the cut)."""
     dtype = origins.dtype
     t_n, p_n, ny, nx = occluded.shape
     flat = occluded.reshape(-1)
@@ -551,6 +552,9 @@ def _bilinear_coefficients(
     b = rx[:, None] * dx + ry[:, None] * dy + rz[:, None] * dz
     meets = (b * b - (rr[:, None] - r * r) > 0) & (b < 0)
     qx, qy, qz = rx[:, None] - b * dx, ry[:, None] - b * dy, rz[:, None] - b * dz
+    if not bilinear:
+        tables = _padded_tables(flat, ny, nx)
+    vis = jnp.zeros(b.shape, dtype)
     coef_r = jnp.zeros(b.shape, dtype) if need_r else None
     coef_q = [jnp.zeros(b.shape, dtype) for _ in range(3)] if need_c else None  # along q
     coef_g = [jnp.zeros(b.shape, dtype) for _ in range(3)] if need_c else None  # the grid weights
@@ -577,10 +581,16 @@ def _bilinear_coefficients(
                 inv = safe_div(1.0, zl)
                 x, y = xl * inv, yl * inv
                 u, v = (x + tan_a) * sx, (y + tan_a) * sy
-                read, (ax, ay), (c00, c10, c01, c11) = _bilinear(flat, k, u, v, ny, nx)
+                if bilinear:
+                    read, (ax, ay), (c00, c10, c01, c11) = _bilinear(flat, k, u, v, ny, nx)
+                    slope_x = (1.0 - ay) * (c10 - c00) + ay * (c11 - c01)
+                    slope_y = (1.0 - ax) * (c01 - c00) + ax * (c11 - c10)
+                else:  # the nearest pixel and the images' central-difference slopes there
+                    near, idx = _padded_index(k, jnp.floor(u), jnp.floor(v), ny, nx)
+                    read, slope_x, slope_y = (jnp.where(near, t[idx], 0.0) for t in tables)
                 # −w·front·(slope of the read along x, y) per unit motion of the image coordinates
-                gx = -w * front * ((1.0 - ay) * (c10 - c00) + ay * (c11 - c01)).astype(dtype) * sx
-                gy = -w * front * ((1.0 - ax) * (c01 - c00) + ax * (c11 - c10)).astype(dtype) * sy
+                gx = -w * front * slope_x.astype(dtype) * sx
+                gy = -w * front * slope_y.astype(dtype) * sy
                 # x = x_l / z_l: δx = (δx_l − x·δz_l)·inv, and alike for y
                 a_x, a_y = gx * inv, gy * inv
                 return u, v, front, 1.0 - read.astype(dtype) * front, a_x, a_y, a_x * x + a_y * y
@@ -604,7 +614,11 @@ def _bilinear_coefficients(
                     term = a_x * dxl[c] - a_z * dzl[c]
                     coef_q[c] = coef_q[c] + (term if dyl[c] is None else term + a_y * dyl[c])
                     coef_g[c] = coef_g[c] + weight_motion(*d_grid[c])
-            if need_occ:
+            vis = vis + w * free
+            if need_occ and not bilinear:
+                near, idx = _padded_index(k, jnp.floor(u), jnp.floor(v), ny, nx)
+                reads.append((idx, jnp.where(near & meets, -w * front, 0.0).astype(occluded.dtype)))
+            elif need_occ:
                 uu, vv = u - 0.5, v - 0.5
                 x0, y0 = jnp.floor(uu), jnp.floor(vv)
                 fx, fy = uu - x0, vv - y0
@@ -618,13 +632,23 @@ def _bilinear_coefficients(
                 )
                 reads.append((base, weights.astype(occluded.dtype)))
     coef = {}
+    if not bilinear:  # the cut's ramp: −(1 − vis)·δarg, arg = (r − ρ)/Δρ + ½, Δρ ∝ r, ρ = |q|
+        rho = safe_sqrt(rr[:, None] - b * b)
+        width = r * _ramp_width(shell, nx)
+        arg = (r - rho) / width + 0.5
+        ramp = jnp.where((arg > 0.0) & (arg < 1.0) & (b < 0), (1.0 - vis) / width, 0.0)
+        ramp_q = safe_div(ramp, rho)  # δρ = q·δrel / ρ
     if need_r:
         coef["r"] = shell * jnp.where(meets, coef_r, 0.0)
+        if not bilinear:
+            coef["r"] = coef["r"] - ramp * (1.0 - (r - rho) / r)
     if need_c:  # δrel = −δc moves q by δrel − (δrel·d) d
         proj = coef_q[0] * dx + coef_q[1] * dy + coef_q[2] * dz
         coef["c"] = tuple(
             -jnp.where(meets, coef_q[c] - proj * d + coef_g[c], 0.0) for c, d in enumerate((dx, dy, dz))
         )
+        if not bilinear:
+            coef["c"] = tuple(cc - ramp_q * q for cc, q in zip(coef["c"], (qx, qy, qz), strict=True))
     return coef, reads
 
 
