@@ -15,7 +15,8 @@ same receivers:
 * ``value_and_grad``: ``jax.value_and_grad(L)`` at δ = 0, the visibility-correct vertex gradient
   (silhouette-edge term of the BSV, differentiable field and combination), with the silhouette
   visibility of ``[method] bsv_gradient`` (``--bsv-gradient raycast image scanline`` times each and
-  reports the relative difference and cosine between their gradients).
+  reports the relative difference and cosine between their gradients; ``coverage`` times ``[method]
+  bsv_images = "coverage"`` instead: the BSV projected from the coverage images, JAX's derivative).
 
 ``--light-visibility sh images`` times each setting of ``[method] light_visibility`` in the same run
 (``images``: the sphere lights' visible fractions looked up in the occlusion images, and their
@@ -85,7 +86,10 @@ def frame_loss(scene, t):
 def _scene(path: str, bsv_gradient: str, light_visibility: str = "sh"):
     """The config's scene with ``[method] bsv_gradient`` and ``light_visibility`` set."""
     d = tomllib.loads((ROOT / path).read_text())
-    d.setdefault("method", {})["bsv_gradient"] = bsv_gradient
+    if bsv_gradient == "coverage":  # the BSV projected from coverage images: JAX's own derivative
+        d.setdefault("method", {})["bsv_images"] = "coverage"
+    else:
+        d.setdefault("method", {})["bsv_gradient"] = bsv_gradient
     # "coverage": the images' lookups reading the scan lines' coverage (light_images = "coverage")
     d["method"]["light_visibility"] = "images" if light_visibility == "coverage" else light_visibility
     if light_visibility == "coverage":
@@ -219,8 +223,9 @@ def main(argv=None) -> int:
         "--bsv-gradient",
         nargs="*",
         default=["image", "raycast"],
-        choices=["raycast", "image", "scanline"],
-        help="[method] bsv_gradient settings to time (same run; 'auto' is 'image' for these configs)",
+        choices=["raycast", "image", "scanline", "coverage"],
+        help="[method] bsv_gradient settings to time (same run; 'auto' is 'image' for these configs); "
+        "'coverage': bsv_images = 'coverage' instead (the BSV from the coverage images, JAX's derivative)",
     )
     ap.add_argument(
         "--light-visibility",

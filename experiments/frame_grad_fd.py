@@ -7,7 +7,8 @@ steps (0.025 … 0.2 of the motion), and a cubic is fitted through all seventeen
 visibility is binary, so a small step averages few pixel flips, and a large one sees the loss's
 curvature; the fit's residuals give the forward's noise and the slope's standard error. The derivatives of
 ``[method] bsv_gradient = "raycast"``, ``"image"`` and ``"scanline"`` are taken at the config's own
-resolution (32²) with ``jax.grad``.
+resolution (32²) with ``jax.grad``; ``coverage`` is ``[method] bsv_images = "coverage"`` (the BSV
+projected from the scan lines' coverage images, JAX's own derivative of that forward pass).
 
 Usage (repository root, project environment active)::
 
@@ -40,7 +41,10 @@ DEFAULT = ["configs/egg_breathing.toml", "configs/bunny_animated.toml"]
 
 def _scene(path: str, gradient: str, directions: int | None = None):
     d = tomllib.loads((ROOT / path).read_text())
-    d.setdefault("method", {})["bsv_gradient"] = gradient
+    if gradient == "coverage":  # the BSV projected from coverage images, JAX's own derivative
+        d.setdefault("method", {})["bsv_images"] = "coverage"
+    else:
+        d.setdefault("method", {})["bsv_gradient"] = gradient
     if directions is not None:
         d["method"]["directions"] = [directions, directions]
     return build_scene(config_from_dict(d, source=path, root=(ROOT / path).parent))
@@ -115,7 +119,10 @@ def main(argv=None) -> int:
         "--gradients",
         nargs="*",
         default=["raycast", "image", "scanline"],
-        choices=["raycast", "image", "scanline"],
+        choices=["raycast", "image", "scanline", "coverage"],
+    )
+    ap.add_argument(
+        "--out", default=None, help="file name in experiments/results (default frame_grad_fd.json)"
     )
     args = ap.parse_args(argv)
     rows = []
@@ -126,7 +133,7 @@ def main(argv=None) -> int:
         fds += f"  cubic fit: {r['cubic_fit_slope']:8.2f} ± {r['cubic_fit_slope_se']:.2f}"
         grads = "   ".join(f"{g} {r[g]:10.2f}" for g in args.gradients)
         print(f"{c:32s} FD ({args.fine}²) {fds}   {grads}", flush=True)
-    out = ROOT / "experiments" / "results" / "frame_grad_fd.json"
+    out = ROOT / "experiments" / "results" / (args.out or "frame_grad_fd.json")
     meta = {
         "date": datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC"),
         "device": str(jax.devices()[0]),

@@ -72,6 +72,7 @@ from .visibility import (
     bsv_silhouette_counts,
     bsv_sphere,
     bsv_with_occlusion_images,
+    coverage_sh,
     edgescan_grad_slots,
     edgescan_scan_slots,
     edgescan_slots,
@@ -190,6 +191,9 @@ def mesh_bsv(occ: MeshOccluder, t, scene: Scene, differentiable: bool = True) ->
     """
     m = scene.method
     t = jnp.asarray(t, occ.unit_vertices.dtype)  # an array: one compile for all t
+    if m.bsv_images == "coverage":
+        v = bsv_input_vertices(occ, _vertices_at(occ, t), m)
+        return _coverage_bsv(occ, v, _coverage(occ, v, m), m)
     kw = dict(n=m.field_bands, grid=m.bsv_grid, directions=m.directions, shell=m.shell)
     faces = _concrete(occ.faces)
     traced = any(isinstance(x, jax.core.Tracer) for x in (occ.unit_vertices, t))
@@ -671,21 +675,38 @@ def occluder_images(occ, t, scene: Scene, differentiable: bool = True) -> Occlus
     )
 
 
-def _coverage_images(occ: MeshOccluder, v, m) -> OcclusionImages:
-    """``method.light_images = "coverage"``: the scan lines' coverage images of the sampler's input
-    vertices ``v`` (:func:`jshadow.visibility.scan_coverage`), read bilinearly, differentiable by
-    JAX itself (exact). Sizes as the scanline derivative's (measured on concrete poses)."""
+def _coverage(occ: MeshOccluder, v, m) -> Float[Array, "T P Ny Nx"]:
+    """The scan lines' coverage images of the sampler's input vertices ``v``
+    (:func:`jshadow.visibility.scan_coverage`), differentiable by JAX itself (exact), for
+    ``light_images`` or ``bsv_images = "coverage"``. Sizes as the scanline derivative's (measured on
+    concrete poses)."""
     faces = _concrete(occ.faces)
     if faces is None or not _uses_edgescan(m, faces):
         raise ValueError(
-            "method.light_images = 'coverage' needs the edge-scan: concrete, closed, consistently "
-            "wound manifold mesh faces (build the scene outside jax transformations)"
+            "method.light_images / bsv_images = 'coverage' needs the edge-scan: concrete, closed, "
+            "consistently wound manifold mesh faces and shell > 1 (build the scene outside jax "
+            "transformations)"
         )
     es = _edgescan_slots(occ, faces, m)
     ss = _scan_grad_slots(occ, faces, m)
-    cov = scan_coverage(v, faces, m.bsv_grid, m.directions, m.shell, slots=es, scan_slots=ss)
+    return scan_coverage(v, faces, m.bsv_grid, m.directions, m.shell, slots=es, scan_slots=ss)
+
+
+def _coverage_images(occ: MeshOccluder, v, m, cov=None) -> OcclusionImages:
+    """``method.light_images = "coverage"``: the coverage images (:func:`_coverage`, or ``cov``
+    where they are made already) read bilinearly."""
+    cov = _coverage(occ, v, m) if cov is None else cov
     center, radius = _bsv_sphere(occ, v, m)
     return OcclusionImages(occluded=cov, center=center, radius=radius, shell=float(m.shell), reads="bilinear")
+
+
+def _coverage_bsv(occ: MeshOccluder, v, cov, m) -> BSV:
+    """``method.bsv_images = "coverage"``: the BSV projected from the coverage images ``cov`` of the
+    sampler's input vertices ``v`` (:func:`jshadow.visibility.coverage_sh`); its derivative is
+    JAX's own."""
+    center, radius = _bsv_sphere(occ, v, m)
+    coeffs = coverage_sh(cov, m.field_bands, tuple(m.directions), float(m.shell))
+    return BSV(coeffs=coeffs, center=center, radius=radius, shell_radius=m.shell * radius)
 
 
 def _mesh_bsv_and_images(occ: MeshOccluder, v, faces: np.ndarray, m) -> tuple[BSV, OcclusionImages]:
@@ -709,7 +730,11 @@ def occluder_bsv_and_images(occ: MeshOccluder, t, scene: Scene) -> tuple[BSV, Oc
     sample this mesh with the edge-scan (then the two are computed apart)."""
     m = scene.method
     faces = _concrete(occ.faces)
-    if faces is None or not _uses_edgescan(m, faces) or m.light_images == "coverage":
+    if m.bsv_images == "coverage" and m.light_images == "coverage":  # one coverage for both
+        v = bsv_input_vertices(occ, _vertices_at(occ, jnp.asarray(t, occ.unit_vertices.dtype)), m)
+        cov = _coverage(occ, v, m)
+        return _coverage_bsv(occ, v, cov, m), _coverage_images(occ, v, m, cov)
+    if faces is None or not _uses_edgescan(m, faces) or "coverage" in (m.light_images, m.bsv_images):
         return None
     v = bsv_input_vertices(occ, _vertices_at(occ, jnp.asarray(t, occ.unit_vertices.dtype)), m)
     if _concrete(v) is None:
@@ -735,8 +760,14 @@ def scene_bsvs_and_images(
     m = scene.method
     bsvs, images = [], []
     for occ in scene.occluders:
+        if isinstance(occ, MeshOccluder) and m.bsv_images == m.light_images == "coverage":
+            bsv, img = occluder_bsv_and_images(occ, t, scene)  # one coverage for both
+            bsvs.append(bsv)
+            images.append(img)
+            continue
         faces = _concrete(occ.faces) if isinstance(occ, MeshOccluder) else None
         one_pass = faces is not None and m.light_images == "samples"  # coverage: its own scan pass
+        one_pass = one_pass and m.bsv_images == "samples"
         if one_pass and _uses_edgescan(m, faces) and bsv_gradient_mode(m, faces) == "image":
             v = bsv_input_vertices(occ, _vertices_at(occ, jnp.asarray(t, occ.unit_vertices.dtype)), m)
             if isinstance(v, jax.core.Tracer):

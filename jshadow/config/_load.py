@@ -24,6 +24,7 @@ from ._errors import ConfigError, did_you_mean
 from ._schema import (
     BSV_CENTERS,
     BSV_GRADIENTS,
+    BSV_IMAGES,
     ENVIRONMENT_TYPES,
     LIGHT_IMAGES,
     LIGHT_TYPES,
@@ -197,6 +198,7 @@ _METHOD_KEYS = (
     "light_visibility",
     "light_cap",
     "light_images",
+    "bsv_images",
     "environment_lights",
     "environment_threshold",
 )
@@ -231,6 +233,7 @@ def _method(t: _Table) -> MethodConfig:
         light_visibility=t.string("light_visibility", "sh", choices=LIGHT_VISIBILITIES),
         light_cap=t.integers("light_cap", 2, [4, 8], lo=1),
         light_images=t.string("light_images", "samples", choices=LIGHT_IMAGES),
+        bsv_images=t.string("bsv_images", "samples", choices=BSV_IMAGES),
         environment_lights=t.integer("environment_lights", 0, lo=0),
         environment_threshold=t.number("environment_threshold", 4.0, check="positive"),
     )

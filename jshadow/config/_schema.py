@@ -21,6 +21,7 @@ from jaxtyping import Array, Float
 
 from ..entities import BSV_CENTERS as BSV_CENTERS
 from ..entities import BSV_GRADIENTS as BSV_GRADIENTS
+from ..entities import BSV_IMAGES as BSV_IMAGES
 from ..entities import LIGHT_IMAGES as LIGHT_IMAGES
 from ..entities import LIGHT_VISIBILITIES as LIGHT_VISIBILITIES
 from ..entities import SELF_VISIBILITIES as SELF_VISIBILITIES
@@ -100,7 +101,8 @@ class MethodConfig(eqx.Module):
     ``self_visibility_grid`` (θ, φ) ray directions over each vertex's normal hemisphere for "rays",
     ``light_visibility`` "sh" | "images" (how mesh occluders shadow sphere lights: the field's SH,
     or rays to the light looked up in the BSV's images), ``light_cap`` (rings, sectors) of those
-    rays per light, ``light_images`` "samples" | "coverage" (the images those rays read), and
+    rays per light, ``light_images`` "samples" | "coverage" (the images those rays read),
+    ``bsv_images`` "samples" | "coverage" (the images a mesh's BSV is projected from), and
     ``environment_lights`` K (0, or a power of two: the lat-long map's radiance
     above ``environment_threshold`` × its mean split off as K distant lights shadowed through the
     images; :mod:`jshadow.envlights`).
@@ -125,6 +127,7 @@ class MethodConfig(eqx.Module):
     light_visibility: str = eqx.field(static=True, default="sh")
     light_cap: tuple[int, int] = eqx.field(static=True, default=(4, 8))
     light_images: str = eqx.field(static=True, default="samples")
+    bsv_images: str = eqx.field(static=True, default="samples")
     environment_lights: int = eqx.field(static=True, default=0)
     environment_threshold: float = eqx.field(static=True, default=4.0)
 
@@ -157,6 +160,7 @@ class MethodConfig(eqx.Module):
                 light_visibility=self.light_visibility,
                 light_cap=tuple(self.light_cap),
                 light_images=self.light_images,
+                bsv_images=self.bsv_images,
                 environment_lights=self.environment_lights,
                 environment_threshold=float(self.environment_threshold),
             )

@@ -29,6 +29,7 @@ from ._bsv import is_closed_manifold as is_closed_manifold
 from ._bsv_grad import bsv_mesh_diff as bsv_mesh_diff
 from ._bsv_grad import bsv_sh_tangent as bsv_sh_tangent
 from ._bsv_grad import bsv_silhouette_counts as bsv_silhouette_counts
+from ._coverage import coverage_sh as coverage_sh
 from ._coverage import scan_coverage as scan_coverage
 from ._directions import cap_sh_projection as cap_sh_projection
 from ._directions import far_hemisphere_sh_projection as far_hemisphere_sh_projection

@@ -47,7 +47,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
-from ._edgescan import _cached_edge_table, _grown_key, _resolve, _slot_bounds
+from ._edgescan import _basis_weights, _cached_edge_table, _grown_key, _project_sh, _resolve, _slot_bounds
 from ._edgescan_scan import (
     _check_scan_slots,
     _compact_boundary,
@@ -57,7 +57,7 @@ from ._edgescan_scan import (
     edgescan_scan_slots,
 )
 
-__all__ = ["scan_coverage"]
+__all__ = ["scan_coverage", "coverage_sh"]
 
 SCANS = ("both", "columns", "rows")
 
@@ -130,6 +130,22 @@ def scan_coverage(
             return out
         need = [int(n) for n in np.asarray(need)]
         slots, scan_slots = _GROWN[key] = _grow(scan_slots, need, slots, cap, directions)
+
+
+def coverage_sh(
+    coverage: Float[ArrayLike, "T P Ny Nx"], n: int, directions: tuple[int, int], shell: float
+) -> Float[Array, "T P n2"]:
+    """BSV coefficients (T, P, n²) projected from occlusion images in [0, 1] (T, P, N_y, N_x), such as
+    :func:`scan_coverage`'s: ``√(4π)·e0 − Σ_pixels cov · w·Y`` with the edge-scan's pixel weights
+    (solid angle) and directions, so that 0/1 images give exactly the edge-scan's coefficients.
+    Linear in the images: the derivative of coverage images carries over exactly."""
+    cov = jnp.asarray(coverage)
+    t_n, p_n, ny, nx = cov.shape
+    if (ny, nx) != tuple(directions):
+        raise ValueError(f"coverage_sh: images of {(ny, nx)} pixels, directions {tuple(directions)}")
+    cols = jnp.swapaxes(cov.reshape(t_n * p_n, ny, nx), 1, 2)  # the edge-scan's column-major pixels
+    basis = _basis_weights(tuple(directions), float(shell), int(n), cov.dtype)
+    return _project_sh(cols, basis, int(n)).reshape(t_n, p_n, n * n)
 
 
 _GROWN: dict = {}  # (configuration, sizes given) -> the sizes they grew to on a concrete pose

@@ -1,0 +1,102 @@
+"""The BSV projected from coverage images (``[method] bsv_images = "coverage"``).
+
+Claims tested: projecting 0/1 images with ``coverage_sh`` gives exactly the edge-scan's BSV; the
+coverage BSV is close to it; a frame rendered with it has the exact derivative of its own forward
+pass (central differences of the same renders converge to the gradient in float64), with the
+sphere light through the n-band path and with the light's images read from the same coverage;
+the renderer and ``render`` agree; the config key is read and checked.
+"""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from test_coverage_images import DIRS, GRID, _lumpy_egg
+from test_image_lookup_grad import _tapered_scene
+from test_light_images import IMAGES, LIGHT
+from test_scene import icosphere_occluder, plane
+
+from jshadow.config import ConfigError, config_from_dict
+from jshadow.entities import Environment, Method, Scene
+from jshadow.runner import Renderer
+from jshadow.scene import render
+from jshadow.visibility import bsv_mesh_edgescan, coverage_sh, scan_coverage
+from jshadow.visibility._edgescan import edgescan_occlusion
+
+
+def test_coverage_sh_of_the_samples_is_the_edgescan_bsv_and_of_the_coverage_close_to_it():
+    v, f = _lumpy_egg()
+    bsv = np.asarray(bsv_mesh_edgescan(jnp.asarray(v), f, 5, GRID, DIRS, 1.5).coeffs)
+    samples = edgescan_occlusion(jnp.asarray(v), f, GRID, DIRS, 1.5)[0].astype(jnp.float32)
+    np.testing.assert_allclose(np.asarray(coverage_sh(samples, 5, DIRS, 1.5)), bsv, atol=2e-5)
+    cov = np.asarray(coverage_sh(scan_coverage(v, f, GRID, DIRS, 1.5), 5, DIRS, 1.5))
+    diff = np.abs(cov - bsv).max() / np.abs(bsv).max()
+    print(f"coverage BSV against the samples' BSV: largest difference {diff:.2e} of the largest coefficient")
+    assert 1e-5 < diff < 0.02  # antialiased, not the same images
+    with pytest.raises(ValueError, match="pixels"):
+        coverage_sh(samples, 5, (DIRS[0], DIRS[1] + 1), 1.5)
+
+
+def _scene(kappa, light_visibility):
+    scene = _tapered_scene(np.random.default_rng(0), kappa)
+    method = dataclasses.replace(
+        scene.method,
+        light_visibility=light_visibility,
+        light_images="coverage",
+        bsv_images="coverage",
+        dtype="float64",
+    )
+    env = Environment(jnp.full(3, 0.3, jnp.float64))  # the BSV shadows the sky in both settings
+    return dataclasses.replace(scene, method=method, environment=env)
+
+
+@pytest.mark.usefixtures("x64")
+@pytest.mark.parametrize("light_visibility", ["sh", "images"])
+def test_frame_with_the_coverage_bsv_has_the_exact_derivative_of_its_forward_pass(light_visibility):
+    """A weighted sum of the frame's irradiance as a function of the mesh's taper κ (its vertices
+    and bounding sphere move): ``jax.grad`` against central differences of the same renders at
+    h = 1e-5 (float64; the forward pass is piecewise smooth, with kinks where a boundary crossing
+    passes a pixel centre, so a much larger step can straddle one). With "images" the BSV and the
+    light's images come from one coverage."""
+    k0 = 0.3
+    w = jnp.asarray(np.random.default_rng(2).uniform(0.5, 1.5, (100, 3)))
+
+    def loss(k):
+        return jnp.sum(w * render(_scene(k, light_visibility)).irradiance)
+
+    g = float(jax.grad(loss)(jnp.float64(k0)))
+    h = 1e-5
+    fd = float(loss(k0 + h) - loss(k0 - h)) / (2 * h)
+    print(f"{light_visibility}: grad {g:.7f}, central differences {fd:.7f}")
+    assert abs(g) > 1e-3
+    assert abs(fd - g) < 1e-4 * abs(g)
+
+
+@pytest.mark.parametrize("light_visibility", ["sh", "images"])
+def test_renderer_and_render_agree_with_the_coverage_bsv(light_visibility):
+    occ = icosphere_occluder((0.0, 1.1, 0.0), 0.6)
+    samples = dataclasses.replace(IMAGES, light_visibility=light_visibility)
+    method = dataclasses.replace(samples, light_images="coverage", bsv_images="coverage")
+    env = Environment(jnp.full(3, 0.3, jnp.float32))
+    scene = Scene(method, plane(n=8), (occ,), (LIGHT,), env)
+    a = np.asarray(render(scene).irradiance)
+    b = np.asarray(Renderer(scene, progress=False).frame(0)[0].irradiance)
+    s = np.asarray(render(dataclasses.replace(scene, method=samples)).irradiance)
+    np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)
+    assert 1e-5 * np.abs(s).max() < np.abs(a - s).max() < 0.05 * np.abs(s).max()
+
+
+def test_bsv_images_key_is_read_and_checked():
+    base = {"receiver": {"type": "plane", "center": [0, 0, 0], "size": [2, 2], "resolution": [2, 2]}}
+    assert config_from_dict({**base, "method": {"bsv_images": "coverage"}}).method.to_method().bsv_images == (
+        "coverage"
+    )
+    assert config_from_dict(base).method.to_method().bsv_images == "samples"
+    with pytest.raises(ConfigError, match="bsv_images"):
+        config_from_dict({**base, "method": {"bsv_images": "area"}})
+    with pytest.raises(ConfigError, match="bsv_gradient"):
+        config_from_dict({**base, "method": {"bsv_images": "coverage", "bsv_gradient": "image"}})
+    with pytest.raises(ValueError, match="bsv_images"):
+        Method(bsv_images="bilinear")
