@@ -31,10 +31,15 @@ def test_coverage_sh_of_the_samples_is_the_edgescan_bsv_and_of_the_coverage_clos
     bsv = np.asarray(bsv_mesh_edgescan(jnp.asarray(v), f, 5, GRID, DIRS, 1.5).coeffs)
     samples = edgescan_occlusion(jnp.asarray(v), f, GRID, DIRS, 1.5)[0].astype(jnp.float32)
     np.testing.assert_allclose(np.asarray(coverage_sh(samples, 5, DIRS, 1.5)), bsv, atol=2e-5)
-    cov = np.asarray(coverage_sh(scan_coverage(v, f, GRID, DIRS, 1.5), 5, DIRS, 1.5))
+    cov = np.asarray(coverage_sh(scan_coverage(v, f, GRID, DIRS, 1.5, scans="split"), 5, DIRS, 1.5))
     diff = np.abs(cov - bsv).max() / np.abs(bsv).max()
     print(f"coverage BSV against the samples' BSV: largest difference {diff:.2e} of the largest coefficient")
     assert 1e-5 < diff < 0.02  # antialiased, not the same images
+    split = np.asarray(scan_coverage(v, f, GRID, DIRS, 1.5, scans="split"))
+    binary = np.asarray(samples)
+    assert split.min() > -0.05 and split.max() < 1.05  # a weighted coverage: near [0, 1]
+    crossed = np.abs(np.asarray(scan_coverage(v, f, GRID, DIRS, 1.5)) - binary) > 1e-6
+    np.testing.assert_allclose(split[~crossed], binary[~crossed], atol=1e-6)  # uncrossed: the samples
     with pytest.raises(ValueError, match="pixels"):
         coverage_sh(samples, 5, (DIRS[0], DIRS[1] + 1), 1.5)
 

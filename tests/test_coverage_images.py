@@ -61,7 +61,8 @@ def test_coverage_is_the_fraction_of_each_scan_line_inside_the_shadow(scans):
 
 
 @pytest.mark.usefixtures("x64")
-def test_coverage_derivative_is_exact():
+@pytest.mark.parametrize("scans", ["both", "split"])
+def test_coverage_derivative_is_exact(scans):
     v0, f = _lumpy_egg(np.float64)
     rng = np.random.default_rng(1)
     dv = rng.normal(size=v0.shape) * 0.05 + np.array([0.3, -0.2, 0.1])
@@ -70,7 +71,9 @@ def test_coverage_derivative_is_exact():
     scan_slots = edgescan_scan_slots(v0, f, GRID, DIRS, 1.5, slots=slots, margin=3.0)
 
     def loss(x):
-        return jnp.sum(w * scan_coverage(x, f, GRID, DIRS, 1.5, slots=slots, scan_slots=scan_slots))
+        return jnp.sum(
+            w * scan_coverage(x, f, GRID, DIRS, 1.5, scans=scans, slots=slots, scan_slots=scan_slots)
+        )
 
     v0j, dvj = jnp.asarray(v0), jnp.asarray(dv)
     _, tangent = jax.jit(lambda x, d: jax.jvp(loss, (x,), (d,)))(v0j, dvj)

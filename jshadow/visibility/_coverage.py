@@ -59,7 +59,7 @@ from ._edgescan_scan import (
 
 __all__ = ["scan_coverage", "coverage_sh"]
 
-SCANS = ("both", "columns", "rows")
+SCANS = ("both", "split", "columns", "rows")
 
 _COVERAGE_OVERFLOW = (
     "coverage images: the edge-scan's or the scan lines' static sizes overflowed for this pose, and "
@@ -89,7 +89,12 @@ def scan_coverage(
             derivative of the coverage, module docstring). faces: (F, 3) int, concrete, closed,
             consistently wound, edge-manifold.
         grid, directions, shell: as for :func:`jshadow.visibility.bsv_mesh_edgescan`.
-        scans: "both" (default: the mean of the column and the row coverage), "columns" or "rows".
+        scans: "both" (default: the mean of the column and the row coverage), "split" (each
+            crossing's term weighted by its edge's share ``1/(1 + s²)`` of its scan, s the edge's
+            slope against the scan line: cos²φ along the columns and sin²φ along the rows, so that
+            the derivative is the direction-split sum of the scanline derivative rather than the
+            plain mean of two Riemann sums, closer to the converged derivative; BENCHMARKS.md "BSV
+            from coverage images"), "columns" or "rows".
         edge_table, slots: as for :func:`jshadow.visibility.bsv_mesh_edgescan`.
         scan_slots: the scan lines' sizes (:func:`jshadow.visibility.edgescan_scan_slots`); None
             measures them on ``vertices``, which must then be concrete.
@@ -165,13 +170,16 @@ def _coverage(x, faces, table, grid, directions, shell, slots, scan_slots, scans
     tr = cr["tr"]
     lines = jnp.where(tr, nx, ny)  # pixels along this crossing's scan line
     step = 2.0 * tan_a / lines
-    height = cr["y"] + _height_tangent(x, cr, slot_all, table, grid, directions, shell)
+    tangent, share = _height_tangent(x, cr, slot_all, table, grid, directions, shell)
+    height = cr["y"] + tangent
     pos = (height + tan_a) / step  # continuous pixel coordinate along the line
     cell = jnp.clip(jnp.floor(jax.lax.stop_gradient(pos)), 0, lines - 1)
     frac = pos - cell
     s = -sigma  # +1 where the line enters the occluded set going up (rows: right)
     live = cr["valid"] & (sigma != 0)
     term = jnp.where(live, jnp.where(frac > 0.5, s * (1.0 - frac), -s * frac), 0.0).astype(x.dtype)
+    if scans == "split":  # both scans, each crossing weighted by its edge's share (cos²φ, sin²φ)
+        term = 2.0 * share * term
     cell = cell.astype(jnp.int32)
     view = slot_all[cr["sid"]] % views
     line = cr["col"]
@@ -183,7 +191,7 @@ def _coverage(x, faces, table, grid, directions, shell, slots, scan_slots, scans
     size = views * ny * nx
     col = jnp.zeros(size, x.dtype).at[flat].add(jnp.where(tr, 0.0, term))
     row = jnp.zeros(size, x.dtype).at[flat].add(jnp.where(tr, term, 0.0))
-    extra = {"both": 0.5 * (col + row), "columns": col, "rows": row}[scans]
+    extra = {"both": 0.5 * (col + row), "split": 0.5 * (col + row), "columns": col, "rows": row}[scans]
     return (binary + extra).reshape(grid[0], grid[1], ny, nx), overflow, need
 
 
@@ -194,7 +202,9 @@ def _height_tangent(x, cr, slot_all, table, grid, directions, shell):
     """Zero in value, with the derivative of each crossing's height along its line (C,): the height
     of its edge's line at the line's centre coordinate (:func:`._edgescan_scan._crossing_edges`, as
     the scanline derivative's terms recompute it; no tangent for an edge within 1e-6 of parallel
-    to its line)."""
+    to its line); and the edge's share ``1/(1 + s²)`` of its scan (C,), differentiable (0 for such
+    an edge)."""
     e = _crossing_edges(x, cr, slot_all, table, grid=grid, directions=directions, shell=shell)
     y = e.ya + (e.xj - e.xa) * e.slope
-    return jnp.where(e.crosses, y - jax.lax.stop_gradient(y), 0.0)
+    share = jnp.where(e.crosses, 1.0 / (1.0 + e.slope * e.slope), 0.0)
+    return jnp.where(e.crosses, y - jax.lax.stop_gradient(y), 0.0), share
