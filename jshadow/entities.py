@@ -232,6 +232,11 @@ class Method:
             raise ValueError(f"method.light_images must be one of {LIGHT_IMAGES}, got {self.light_images!r}")
         if self.bsv_images not in BSV_IMAGES:
             raise ValueError(f"method.bsv_images must be one of {BSV_IMAGES}, got {self.bsv_images!r}")
+        if self.bsv_images == "coverage" and not self.shell > 1.0:
+            raise ValueError(
+                "method.bsv_images = 'coverage' needs the edge-scan, which samples a shell outside the "
+                f"bounding sphere: shell > 1, got {self.shell}"
+            )
         if self.bsv_images == "coverage" and self.bsv_gradient != "auto":
             raise ValueError(
                 "method.bsv_gradient does not apply with bsv_images = 'coverage' (the coverage BSV's "

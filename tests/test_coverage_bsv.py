@@ -105,3 +105,15 @@ def test_bsv_images_key_is_read_and_checked():
         config_from_dict({**base, "method": {"bsv_images": "coverage", "bsv_gradient": "image"}})
     with pytest.raises(ValueError, match="bsv_images"):
         Method(bsv_images="bilinear")
+    with pytest.raises(ConfigError, match="shell > 1"):
+        config_from_dict({**base, "method": {"bsv_images": "coverage", "preset": "paper"}})
+
+
+def test_a_mesh_the_edge_scan_cannot_sample_is_refused_with_the_coverage_bsv():
+    """An open mesh (an icosphere missing a face) has no edge-scan, so no coverage: a clear error."""
+    occ = icosphere_occluder((0.0, 1.1, 0.0), 0.6)
+    occ = dataclasses.replace(occ, faces=occ.faces[1:])
+    method = dataclasses.replace(IMAGES, light_visibility="sh", bsv_images="coverage")
+    scene = Scene(method, plane(n=4), (occ,), (LIGHT,), Environment(jnp.full(3, 0.3, jnp.float32)))
+    with pytest.raises(ValueError, match="edge-scan"):
+        render(scene)
