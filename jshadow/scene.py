@@ -690,7 +690,7 @@ def _coverage(occ: MeshOccluder, v, m) -> Float[Array, "T P Ny Nx"]:
     es = _edgescan_slots(occ, faces, m)
     ss = _scan_grad_slots(occ, faces, m)
     # the BSV's: each crossing weighted by its edge's share of its scan, whose derivative is the
-    # converged one's within 0.5-2.3 % (the plain mean's 13-24 %, BENCHMARKS.md "BSV from coverage
+    # converged one's within 0.5-2.3 % (the plain mean's 13-39 %, BENCHMARKS.md "BSV from coverage
     # images"); the light images alone keep the mean their figures were measured with
     scans = "split" if m.bsv_images == "coverage" else "both"
     return scan_coverage(v, faces, m.bsv_grid, m.directions, m.shell, scans=scans, slots=es, scan_slots=ss)
