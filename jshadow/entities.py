@@ -140,7 +140,7 @@ class Method:
     coverage images (as ``light_images = "coverage"``, and shared with them), whose projection is
     continuous in the vertices, so that the BSV's derivative is JAX's own and exact for the forward
     pass that runs, and much cheaper than the silhouette terms (no per-node visibility): the frame
-    gradient's backward / forward 0.4–1.2× on the deforming configs, against 3.5–17× (BENCHMARKS.md
+    gradient's backward / forward 0.4–1.2× on the deforming configs, against 3.4–18× (BENCHMARKS.md
     "BSV from coverage images"). The forward pass costs the scan lines' boundary crossings: a
     deforming frame about 3× the default's. Needs the edge-scan (shell > 1, closed meshes);
     ``bsv_gradient`` must stay "auto".

@@ -185,7 +185,7 @@ def _coverage(x, faces, table, grid, directions, shell, slots, scan_slots, scans
     live = cr["valid"] & (sigma != 0)
     term = jnp.where(live, jnp.where(frac > 0.5, s * (1.0 - frac), -s * frac), 0.0).astype(x.dtype)
     if scans == "split":  # both scans, each crossing weighted by its edge's share (cos²φ, sin²φ)
-        term = 2.0 * share * term
+        term = share * term
     cell = cell.astype(jnp.int32)
     view = slot_all[cr["sid"]] % views
     line = cr["col"]
@@ -197,7 +197,7 @@ def _coverage(x, faces, table, grid, directions, shell, slots, scan_slots, scans
     size = views * ny * nx
     col = jnp.zeros(size, x.dtype).at[flat].add(jnp.where(tr, 0.0, term))
     row = jnp.zeros(size, x.dtype).at[flat].add(jnp.where(tr, term, 0.0))
-    extra = {"both": 0.5 * (col + row), "split": 0.5 * (col + row), "columns": col, "rows": row}[scans]
+    extra = {"both": 0.5 * (col + row), "split": col + row, "columns": col, "rows": row}[scans]
     return (binary + extra).reshape(grid[0], grid[1], ny, nx), overflow, need
 
 

@@ -271,16 +271,8 @@ def _fan_lookup(
     else:
         gi, gj = grid(rel, axis, big_r)
         d_gi = d_gj = None
-    i0, j0 = jnp.floor(gi), jnp.floor(gj)
-    fi, fj = gi - i0, gj - j0
-    i0, j0 = i0.astype(jnp.int32), j0.astype(jnp.int32)
-    th, ph = bsv_grid_angles(t_n, p_n, dtype)
-    sin_t, cos_t, sin_p, cos_p = jnp.sin(th), jnp.cos(th), jnp.sin(ph), jnp.cos(ph)
-    b = rx[:, None] * dx + ry[:, None] * dy + rz[:, None] * dz
-    meets = (b * b - (rr[:, None] - r * r) > 0) & (b < 0)
-    # the focal point q = rel − b·d (the ray's point nearest c), once per ray for all grid points
-    qx, qy, qz = rx[:, None] - b * dx, ry[:, None] - b * dy, rz[:, None] - b * dz
-    # its tangent: dq = drel − db·d − b·dd with db = drel·d + rel·dd
+    cell, angles, b, meets, (qx, qy, qz) = _rays(gi, gj, rel, rr, r, dx, dy, dz, t_n, p_n, dtype)
+    # the focal point's tangent: dq = drel − db·d − b·dd with db = drel·d + rel·dd
     d_b = _lin_sum(
         None if d_rel is None else d_rel[:, 0:1] * dx + d_rel[:, 1:2] * dy + d_rel[:, 2:3] * dz,
         *(None if t is None else x[:, None] * t for x, t in ((rx, d_dx), (ry, d_dy), (rz, d_dz))),
@@ -297,70 +289,62 @@ def _fan_lookup(
         _, *slopes = _padded_tables(flat, ny, nx)
     vis = jnp.zeros(b.shape, dtype)
     d_vis = None
-    for di in (0, 1):
-        ii = jnp.clip(i0 + di, 0, t_n - 1)
-        wi = fi if di else 1.0 - fi
+    for di, dj, wi, wj, st, ct, sp, cp, k in _corners(cell, angles, t_n, p_n):
         d_wi = None if d_gi is None else (d_gi if di else -d_gi)
-        st, ct = sin_t[ii][:, None], cos_t[ii][:, None]
-        for dj in (0, 1):
-            jj = jnp.mod(j0 + dj, p_n)
-            wj = fj if dj else 1.0 - fj
-            d_wj = None if d_gj is None else (d_gj if dj else -d_gj)
-            sp, cp = sin_p[jj][:, None], cos_p[jj][:, None]
-            xl, yl, zl = _grid_point_coordinates(qx, qy, qz, ct, st, cp, sp, big_r)
-            front = zl > 0
-            inv = safe_div(1.0, zl)
-            x, y = xl * inv, yl * inv
-            u = (x + tan_a) * (nx / (2.0 * tan_a))  # continuous pixel coordinates
-            v = (y + tan_a) * (ny / (2.0 * tan_a))
-            k = (ii * p_n + jj)[:, None]
-            if bilinear:
-                read, (ax, ay), corners = _bilinear(flat, k, u, v, ny, nx)
-                hit = read * front.astype(flat.dtype)
-            elif coverage and reference:
-                hit = _read(flat, k, u, v, ny, nx) * front.astype(flat.dtype)
-            else:
-                px, py = jnp.floor(u), jnp.floor(v)
-                hit = _gather(flat, k, px, py, ny, nx)
-                hit = hit & front if hit.dtype == jnp.bool_ else hit * front.astype(hit.dtype)
-            w = (wi * wj)[:, None]
-            vis = vis + w * (1.0 - hit.astype(dtype))
-            if not live:
-                continue
-            # tangent: the pixel coordinates (through q and R), the pixels' own change, the weights
-            dqx, dqy, dqz = d_q
-            d_h = _lin_sum(None if dqx is None else dqx * cp, None if dqy is None else dqy * sp)
-            d_xl = _lin_sum(None if d_h is None else d_h * ct, None if dqz is None else -dqz * st)
-            d_yl = _lin_sum(None if dqx is None else dqx * sp, None if dqy is None else -dqy * cp)
-            d_zl = _lin_sum(d_big_r, None if d_h is None else -d_h * st, None if dqz is None else -dqz * ct)
-            d_x = _lin_sum(d_xl, None if d_zl is None else -x * d_zl)
-            d_y = _lin_sum(d_yl, None if d_zl is None else -y * d_zl)
-            terms = []
-            if bilinear:  # the bilinear read's own derivative, and the pixels' change read alike
-                c00, c10, c01, c11 = corners
-                if d_x is not None:
-                    slope = (1.0 - ay) * (c10 - c00) + ay * (c11 - c01)
-                    terms.append(slope * (d_x * inv) * (nx / (2.0 * tan_a)))
-                if d_y is not None:
-                    slope = (1.0 - ax) * (c01 - c00) + ax * (c11 - c10)
-                    terms.append(slope * (d_y * inv) * (ny / (2.0 * tan_a)))
-                if d_occ is not None:
-                    terms.append(_bilinear(d_occ.reshape(-1), k, u, v, ny, nx)[0].astype(dtype))
-            elif d_x is not None or d_y is not None:
-                near, idx = _padded_index(k, px, py, ny, nx)
-                for d_xy, table, scale in ((d_x, slopes[0], nx), (d_y, slopes[1], ny)):
-                    if d_xy is not None:
-                        slope = jnp.where(near, table[idx], 0.0).astype(dtype)
-                        terms.append(slope * (d_xy * inv) * (scale / (2.0 * tan_a)))
-            if d_occ is not None and not bilinear:
-                terms.append(_gather(d_occ.reshape(-1), k, px, py, ny, nx).astype(dtype))
-            d_hit = None if not terms else _lin_sum(*terms) * front.astype(dtype)
-            d_w = _lin_sum(None if d_wi is None else d_wi * wj, None if d_wj is None else wi * d_wj)
-            d_vis = _lin_sum(
-                d_vis,
-                None if d_w is None else d_w[:, None] * (1.0 - hit.astype(dtype)),
-                None if d_hit is None else -w * d_hit,
-            )
+        d_wj = None if d_gj is None else (d_gj if dj else -d_gj)
+        xl, yl, zl = _grid_point_coordinates(qx, qy, qz, ct, st, cp, sp, big_r)
+        front = zl > 0
+        inv = safe_div(1.0, zl)
+        x, y = xl * inv, yl * inv
+        u = (x + tan_a) * (nx / (2.0 * tan_a))  # continuous pixel coordinates
+        v = (y + tan_a) * (ny / (2.0 * tan_a))
+        if bilinear:
+            read, (ax, ay), corners = _bilinear(flat, k, u, v, ny, nx)
+            hit = read * front.astype(flat.dtype)
+        elif coverage and reference:
+            hit = _read(flat, k, u, v, ny, nx) * front.astype(flat.dtype)
+        else:
+            px, py = jnp.floor(u), jnp.floor(v)
+            hit = _gather(flat, k, px, py, ny, nx)
+            hit = hit & front if hit.dtype == jnp.bool_ else hit * front.astype(hit.dtype)
+        w = (wi * wj)[:, None]
+        vis = vis + w * (1.0 - hit.astype(dtype))
+        if not live:
+            continue
+        # tangent: the pixel coordinates (through q and R), the pixels' own change, the weights
+        dqx, dqy, dqz = d_q
+        d_h = _lin_sum(None if dqx is None else dqx * cp, None if dqy is None else dqy * sp)
+        d_xl = _lin_sum(None if d_h is None else d_h * ct, None if dqz is None else -dqz * st)
+        d_yl = _lin_sum(None if dqx is None else dqx * sp, None if dqy is None else -dqy * cp)
+        d_zl = _lin_sum(d_big_r, None if d_h is None else -d_h * st, None if dqz is None else -dqz * ct)
+        d_x = _lin_sum(d_xl, None if d_zl is None else -x * d_zl)
+        d_y = _lin_sum(d_yl, None if d_zl is None else -y * d_zl)
+        terms = []
+        if bilinear:  # the bilinear read's own derivative, and the pixels' change read alike
+            c00, c10, c01, c11 = corners
+            if d_x is not None:
+                slope = (1.0 - ay) * (c10 - c00) + ay * (c11 - c01)
+                terms.append(slope * (d_x * inv) * (nx / (2.0 * tan_a)))
+            if d_y is not None:
+                slope = (1.0 - ax) * (c01 - c00) + ax * (c11 - c10)
+                terms.append(slope * (d_y * inv) * (ny / (2.0 * tan_a)))
+            if d_occ is not None:
+                terms.append(_bilinear(d_occ.reshape(-1), k, u, v, ny, nx)[0].astype(dtype))
+        elif d_x is not None or d_y is not None:
+            near, idx = _padded_index(k, px, py, ny, nx)
+            for d_xy, table, scale in ((d_x, slopes[0], nx), (d_y, slopes[1], ny)):
+                if d_xy is not None:
+                    slope = jnp.where(near, table[idx], 0.0).astype(dtype)
+                    terms.append(slope * (d_xy * inv) * (scale / (2.0 * tan_a)))
+        if d_occ is not None and not bilinear:
+            terms.append(_gather(d_occ.reshape(-1), k, px, py, ny, nx).astype(dtype))
+        d_hit = None if not terms else _lin_sum(*terms) * front.astype(dtype)
+        d_w = _lin_sum(None if d_wi is None else d_wi * wj, None if d_wj is None else wi * d_wj)
+        d_vis = _lin_sum(
+            d_vis,
+            None if d_w is None else d_w[:, None] * (1.0 - hit.astype(dtype)),
+            None if d_hit is None else -w * d_hit,
+        )
     out = jnp.where(meets, vis, 1.0)
     if not coverage or reference:
         if coverage:  # the cut's ramp, for JAX's derivative (value-neutral), as written out below
@@ -391,6 +375,40 @@ def _fan_lookup(
     if d_arg is not None and not bilinear:  # bilinear reads: the exact derivative, the cut has none
         d_out = d_out - jnp.where(ramping, (1.0 - vis) * d_arg, 0.0)
     return out, d_out
+
+
+def _rays(gi, gj, rel, rr, radius, dx, dy, dz, t_n: int, p_n: int, dtype):
+    """What every lookup of a fan needs once per ray: the cell ``(i0, j0, fi, fj)`` of the grid
+    coordinates (N,), the grid's angles ``(sin θ, cos θ, sin φ, cos φ)``, ``b = rel·d`` (N, K),
+    whether the ray's line meets the bounding sphere ahead (N, K), and the focal point q = rel − b·d
+    (three (N, K)), the ray's point nearest the centre."""
+    i0, j0 = jnp.floor(gi), jnp.floor(gj)
+    fi, fj = gi - i0, gj - j0
+    i0, j0 = i0.astype(jnp.int32), j0.astype(jnp.int32)
+    th, ph = bsv_grid_angles(t_n, p_n, dtype)
+    angles = (jnp.sin(th), jnp.cos(th), jnp.sin(ph), jnp.cos(ph))
+    rx, ry, rz = rel[:, 0], rel[:, 1], rel[:, 2]
+    b = rx[:, None] * dx + ry[:, None] * dy + rz[:, None] * dz
+    meets = (b * b - (rr[:, None] - radius * radius) > 0) & (b < 0)
+    q = (rx[:, None] - b * dx, ry[:, None] - b * dy, rz[:, None] - b * dz)
+    return (i0, j0, fi, fj), angles, b, meets, q
+
+
+def _corners(cell, angles, t_n: int, p_n: int):
+    """The four grid points around each fan's entry (:func:`_rays`' cell): per point ``(di, dj, wi,
+    wj, st, ct, sp, cp, k)``, its offsets in the cell, bilinear weights (N,), sines and cosines of
+    its angles and its image index (N, 1)."""
+    i0, j0, fi, fj = cell
+    sin_t, cos_t, sin_p, cos_p = angles
+    for di in (0, 1):
+        ii = jnp.clip(i0 + di, 0, t_n - 1)
+        wi = fi if di else 1.0 - fi
+        st, ct = sin_t[ii][:, None], cos_t[ii][:, None]
+        for dj in (0, 1):
+            jj = jnp.mod(j0 + dj, p_n)
+            wj = fj if dj else 1.0 - fj
+            sp, cp = sin_p[jj][:, None], cos_p[jj][:, None]
+            yield di, dj, wi, wj, st, ct, sp, cp, (ii * p_n + jj)[:, None]
 
 
 def _axis_grid(rel, axis, big_r, t_n: int, p_n: int):
@@ -471,7 +489,7 @@ def _placement_tangent(shell, bilinear, primals, tangents):
     (``tests/test_image_lookup_grad.py``)."""
     d_occ, d_c, d_r = (None if isinstance(t, SymbolicZero) else t for t in tangents)
     # a stage of its own (in one program with the value and the rest, XLA:CPU fused the four
-    # reads' coefficients into their consumers: the radius's gradient 3.5× slower)
+    # reads' coefficients into their consumers: the radius's gradient 77 against 14.5 ms on the egg)
     coefficients = partial(
         _placement_coefficients,
         shell,
@@ -502,7 +520,7 @@ def _placement_tangent(shell, bilinear, primals, tangents):
 def _corner_table(images):
     """(G, N_y, N_x) images, padded by one pixel of background, as rows of the four pixels
     ``(p, p + 1, p + W, p + W + 1)`` at each flat padded index p (W = N_x + 2): a bilinear read's
-    corners in one gather (:func:`_bilinear_coefficients`'s ``base``)."""
+    corners in one gather (:func:`_placement_coefficients`' ``base``)."""
     t_n, p_n, ny, nx = images.shape
     wid = nx + 2
     flat = jnp.pad(images.reshape(-1, ny, nx), ((0, 0), (1, 1), (1, 1))).reshape(-1)
@@ -544,14 +562,7 @@ def _placement_coefficients(
         for c in range(3):
             e = jnp.zeros_like(rel).at[:, c].set(1.0)
             d_grid[c] = jax.jvp(lambda x: _axis_grid(x, axis, big_r, t_n, p_n), (rel,), (e,))[1]
-    i0, j0 = jnp.floor(gi), jnp.floor(gj)
-    fi, fj = gi - i0, gj - j0
-    i0, j0 = i0.astype(jnp.int32), j0.astype(jnp.int32)
-    th, ph = bsv_grid_angles(t_n, p_n, dtype)
-    sin_t, cos_t, sin_p, cos_p = jnp.sin(th), jnp.cos(th), jnp.sin(ph), jnp.cos(ph)
-    b = rx[:, None] * dx + ry[:, None] * dy + rz[:, None] * dz
-    meets = (b * b - (rr[:, None] - r * r) > 0) & (b < 0)
-    qx, qy, qz = rx[:, None] - b * dx, ry[:, None] - b * dy, rz[:, None] - b * dz
+    cell, angles, b, meets, (qx, qy, qz) = _rays(gi, gj, rel, rr, r, dx, dy, dz, t_n, p_n, dtype)
     if not bilinear:
         tables = _padded_tables(flat, ny, nx)
     vis = jnp.zeros(b.shape, dtype)
@@ -560,77 +571,68 @@ def _placement_coefficients(
     coef_g = [jnp.zeros(b.shape, dtype) for _ in range(3)] if need_c else None  # the grid weights
     reads = []
     wid = nx + 2
-    for di in (0, 1):
-        ii = jnp.clip(i0 + di, 0, t_n - 1)
-        wi = fi if di else 1.0 - fi
-        sgn_i = 1.0 if di else -1.0
-        st, ct = sin_t[ii][:, None], cos_t[ii][:, None]
-        for dj in (0, 1):
-            jj = jnp.mod(j0 + dj, p_n)
-            wj = fj if dj else 1.0 - fj
-            sgn_j = 1.0 if dj else -1.0
-            sp, cp = sin_p[jj][:, None], cos_p[jj][:, None]
-            k = (ii * p_n + jj)[:, None]
-            w = (wi * wj)[:, None]
+    for di, dj, wi, wj, st, ct, sp, cp, k in _corners(cell, angles, t_n, p_n):
+        sgn_i, sgn_j = (1.0 if di else -1.0), (1.0 if dj else -1.0)
+        w = (wi * wj)[:, None]
 
-            def read_slopes(qx, qy, qz, ct, st, cp, sp, k, w):
-                """The read's pixel coordinates (u, v), its 1 − hit, and (a_x, a_y, a_z): the value's
-                change per unit change of x_l, y_l and −z_l·(x, y)."""
-                xl, yl, zl = _grid_point_coordinates(qx, qy, qz, ct, st, cp, sp, big_r)
-                front = (zl > 0).astype(dtype)
-                inv = safe_div(1.0, zl)
-                x, y = xl * inv, yl * inv
-                u, v = (x + tan_a) * sx, (y + tan_a) * sy
-                if bilinear:
-                    read, (ax, ay), (c00, c10, c01, c11) = _bilinear(flat, k, u, v, ny, nx)
-                    slope_x = (1.0 - ay) * (c10 - c00) + ay * (c11 - c01)
-                    slope_y = (1.0 - ax) * (c01 - c00) + ax * (c11 - c10)
-                else:  # the nearest pixel and the images' central-difference slopes there
-                    near, idx = _padded_index(k, jnp.floor(u), jnp.floor(v), ny, nx)
-                    read, slope_x, slope_y = (jnp.where(near, t[idx], 0.0) for t in tables)
-                # −w·front·(slope of the read along x, y) per unit motion of the image coordinates
-                gx = -w * front * slope_x.astype(dtype) * sx
-                gy = -w * front * slope_y.astype(dtype) * sy
-                # x = x_l / z_l: δx = (δx_l − x·δz_l)·inv, and alike for y
-                a_x, a_y = gx * inv, gy * inv
-                return u, v, front, 1.0 - read.astype(dtype) * front, a_x, a_y, a_x * x + a_y * y
-
-            # for the three centre coefficients each grid point's ingredients are a stage (buffers):
-            # fused into them, XLA:CPU recomputed the four reads for each (3.7× slower); for the
-            # radius alone the stage costs more than it saves
-            ingredients = partial(staged, always(big_r), read_slopes) if need_c else read_slopes
-            u, v, front, free, a_x, a_y, a_z = ingredients(qx, qy, qz, ct, st, cp, sp, k, w)
-
-            def weight_motion(d_gi, d_gj, wi=wi, wj=wj, sgn_i=sgn_i, sgn_j=sgn_j, free=free):
-                return (sgn_i * d_gi * wj + wi * sgn_j * d_gj)[:, None] * free
-
-            if need_r:  # q is fixed; z_l moves by δR
-                coef_r = coef_r + weight_motion(*d_grid["r"]) - a_z
-            if need_c:  # x_l, y_l, z_l move with q (the grid point's frame rows)
-                dxl = (ct * cp, ct * sp, -st)
-                dyl = (sp, -cp, None)
-                dzl = (-st * cp, -st * sp, -ct)
-                for c in range(3):
-                    term = a_x * dxl[c] - a_z * dzl[c]
-                    coef_q[c] = coef_q[c] + (term if dyl[c] is None else term + a_y * dyl[c])
-                    coef_g[c] = coef_g[c] + weight_motion(*d_grid[c])
-            vis = vis + w * free
-            if need_occ and not bilinear:
+        def read_slopes(qx, qy, qz, ct, st, cp, sp, k, w):
+            """The read's pixel coordinates (u, v), its 1 − hit, and (a_x, a_y, a_z): the value's
+            change per unit change of x_l, y_l and −z_l·(x, y)."""
+            xl, yl, zl = _grid_point_coordinates(qx, qy, qz, ct, st, cp, sp, big_r)
+            front = (zl > 0).astype(dtype)
+            inv = safe_div(1.0, zl)
+            x, y = xl * inv, yl * inv
+            u, v = (x + tan_a) * sx, (y + tan_a) * sy
+            if bilinear:
+                read, (ax, ay), (c00, c10, c01, c11) = _bilinear(flat, k, u, v, ny, nx)
+                slope_x = (1.0 - ay) * (c10 - c00) + ay * (c11 - c01)
+                slope_y = (1.0 - ax) * (c01 - c00) + ax * (c11 - c10)
+            else:  # the nearest pixel and the images' central-difference slopes there
                 near, idx = _padded_index(k, jnp.floor(u), jnp.floor(v), ny, nx)
-                reads.append((idx, jnp.where(near & meets, -w * front, 0.0).astype(occluded.dtype)))
-            elif need_occ:
-                uu, vv = u - 0.5, v - 0.5
-                x0, y0 = jnp.floor(uu), jnp.floor(vv)
-                fx, fy = uu - x0, vv - y0
-                near = (x0 >= -1) & (x0 <= nx - 1) & (y0 >= -1) & (y0 <= ny - 1) & meets
-                base = (k * (ny + 2) + jnp.clip(y0, -1, ny - 1).astype(jnp.int32) + 1) * wid
-                base = base + jnp.clip(x0, -1, nx - 1).astype(jnp.int32) + 1
-                scale = jnp.where(near, -w * front, 0.0)
-                weights = (
-                    jnp.stack([(1.0 - fx) * (1.0 - fy), fx * (1.0 - fy), (1.0 - fx) * fy, fx * fy], axis=-1)
-                    * scale[..., None]
-                )
-                reads.append((base, weights.astype(occluded.dtype)))
+                read, slope_x, slope_y = (jnp.where(near, t[idx], 0.0) for t in tables)
+            # −w·front·(slope of the read along x, y) per unit motion of the image coordinates
+            gx = -w * front * slope_x.astype(dtype) * sx
+            gy = -w * front * slope_y.astype(dtype) * sy
+            # x = x_l / z_l: δx = (δx_l − x·δz_l)·inv, and alike for y
+            a_x, a_y = gx * inv, gy * inv
+            return u, v, front, 1.0 - read.astype(dtype) * front, a_x, a_y, a_x * x + a_y * y
+
+        # for the three centre coefficients each grid point's ingredients are a stage (buffers):
+        # fused into them, XLA:CPU recomputed the four reads for each (58 against 15 ms); for the
+        # radius alone the stage costs more than it saves
+        ingredients = partial(staged, always(big_r), read_slopes) if need_c else read_slopes
+        u, v, front, free, a_x, a_y, a_z = ingredients(qx, qy, qz, ct, st, cp, sp, k, w)
+
+        def weight_motion(d_gi, d_gj, wi=wi, wj=wj, sgn_i=sgn_i, sgn_j=sgn_j, free=free):
+            return (sgn_i * d_gi * wj + wi * sgn_j * d_gj)[:, None] * free
+
+        if need_r:  # q is fixed; z_l moves by δR
+            coef_r = coef_r + weight_motion(*d_grid["r"]) - a_z
+        if need_c:  # x_l, y_l, z_l move with q (the grid point's frame rows)
+            dxl = (ct * cp, ct * sp, -st)
+            dyl = (sp, -cp, None)
+            dzl = (-st * cp, -st * sp, -ct)
+            for c in range(3):
+                term = a_x * dxl[c] - a_z * dzl[c]
+                coef_q[c] = coef_q[c] + (term if dyl[c] is None else term + a_y * dyl[c])
+                coef_g[c] = coef_g[c] + weight_motion(*d_grid[c])
+        vis = vis + w * free
+        if need_occ and not bilinear:
+            near, idx = _padded_index(k, jnp.floor(u), jnp.floor(v), ny, nx)
+            reads.append((idx, jnp.where(near & meets, -w * front, 0.0).astype(occluded.dtype)))
+        elif need_occ:
+            uu, vv = u - 0.5, v - 0.5
+            x0, y0 = jnp.floor(uu), jnp.floor(vv)
+            fx, fy = uu - x0, vv - y0
+            near = (x0 >= -1) & (x0 <= nx - 1) & (y0 >= -1) & (y0 <= ny - 1) & meets
+            base = (k * (ny + 2) + jnp.clip(y0, -1, ny - 1).astype(jnp.int32) + 1) * wid
+            base = base + jnp.clip(x0, -1, nx - 1).astype(jnp.int32) + 1
+            scale = jnp.where(near, -w * front, 0.0)
+            weights = (
+                jnp.stack([(1.0 - fx) * (1.0 - fy), fx * (1.0 - fy), (1.0 - fx) * fy, fx * fy], axis=-1)
+                * scale[..., None]
+            )
+            reads.append((base, weights.astype(occluded.dtype)))
     coef = {}
     if not bilinear:  # the cut's ramp: −(1 − vis)·δarg, arg = (r − ρ)/Δρ + ½, Δρ ∝ r, ρ = |q|
         rho = safe_sqrt(rr[:, None] - b * b)
