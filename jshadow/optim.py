@@ -31,7 +31,7 @@ from jaxtyping import Array, Float
 
 from ._types import Faces
 from .entities import Scene, frame_time
-from .scene import render, render_at, scene_bsvs_and_images, uses_light_images
+from .scene import grow_slots, render, render_at, scene_bsvs_and_images, uses_light_images
 
 __all__ = [
     "FitResult",
@@ -52,7 +52,8 @@ class FitResult:
     ``params``: final values (one array per parameter); ``loss``: the loss per step, evaluated at the
     parameters *before* that step's update; ``history``: parameter values before each step (empty
     when not kept); ``first_step_s``: wall time of the first step (compilation included);
-    ``step_s``: wall time of every later step (seconds).
+    ``step_s``: wall time of every later step (seconds; a retraced step's includes its compilation);
+    ``retraced``: the steps traced again after a static-size overflow (see :func:`fit`).
     """
 
     params: list  # final values, one array per parameter
@@ -60,6 +61,7 @@ class FitResult:
     history: list = field(default_factory=list)  # parameter values per step
     first_step_s: float = 0.0
     step_s: list[float] = field(default_factory=list)
+    retraced: list[int] = field(default_factory=list)
 
     @property
     def ms_per_step(self) -> float:
@@ -172,11 +174,18 @@ def fit(
     progress: bool = False,
     keep_history: bool = True,
     dtype=jnp.float32,
+    on_overflow: Callable[[list], bool] | None = None,
 ) -> FitResult:
     """Minimise ``loss_fn(params)`` over a list of arrays with optax (Adam by default).
 
     The whole step (loss, gradient, update) is one ``eqx.filter_jit``; the loss is read back each
     step. ``init`` values are cast to ``dtype``. Raises ``ValueError`` for ``steps < 1``.
+
+    ``on_overflow(params)``, if given, is called with the current (concrete) parameters when a step
+    raises a static-size overflow (an ``equinox.EquinoxRuntimeError`` whose message says
+    "overflowed": a traced pose needs more slots than were measured); if it returns True (the sizes
+    grew) the step is traced again and retried, at most three times per step; otherwise the error
+    propagates.
     """
     if steps < 1:
         raise ValueError(f"steps must be a positive integer, got {steps}")
@@ -185,8 +194,7 @@ def fit(
     with jax.numpy_dtype_promotion("standard"):
         state = opt.init(params)
 
-    @eqx.filter_jit
-    def step(params, state):
+    def raw_step(params, state):
         loss, g = jax.value_and_grad(loss_fn)(params)
         # optax mixes its int32 step count with float decay rates (Adam's bias correction): allow
         # the standard promotion there even when the caller runs with strict dtype promotion
@@ -195,7 +203,26 @@ def fit(
             params = optax.apply_updates(params, updates)
         return params, state, loss
 
+    step = eqx.filter_jit(raw_step)
+
     result = FitResult(params=params)
+
+    def guarded(i, params, state):
+        nonlocal step
+        for attempt in range(4):
+            try:
+                new = step(params, state)
+                jax.block_until_ready(new)
+                return new
+            except eqx.EquinoxRuntimeError as err:
+                if on_overflow is None or attempt == 3 or "overflowed" not in str(err):
+                    raise
+                if not on_overflow(params):
+                    raise
+                step = eqx.filter_jit(lambda p, s: raw_step(p, s))  # a fresh trace, grown sizes
+                result.retraced.append(i)
+        raise AssertionError("unreachable")
+
     it = range(steps)
     if progress:
         from tqdm.auto import tqdm
@@ -205,8 +232,8 @@ def fit(
         if keep_history:
             result.history.append([np.asarray(p).tolist() for p in params])
         t0 = time.perf_counter()
-        params, state, loss = step(params, state)
-        loss = float(loss)  # blocks until the step is done
+        params, state, loss = guarded(i, params, state)
+        loss = float(loss)
         dt = time.perf_counter() - t0
         if i == 0:
             result.first_step_s = dt
@@ -247,6 +274,10 @@ def fit_params(
         penalty: optional ``params → scalar`` added to the loss (e.g. a weighted
             :func:`laplacian_penalty` of an offset field).
         keep_history: record the parameters before every step in ``FitResult.history``.
+
+    A traced pose that needs larger static sizes than were measured (a mesh deformed further than
+    any concrete pose seen) makes the scene's sizes be measured again at the current parameters
+    (:func:`jshadow.scene.grow_slots`) and the step retraced.
     """
     target = jnp.asarray(target)
     if light_sets is not None and (target.ndim != 3 or target.shape[0] != len(light_sets)):
@@ -269,6 +300,9 @@ def fit_params(
             loss = loss + penalty(p)
         return loss
 
+    def grow(p):
+        return grow_slots(make_scene([jnp.asarray(x) for x in p]))
+
     return fit(
         loss_fn,
         start,
@@ -277,4 +311,5 @@ def fit_params(
         learning_rate=learning_rate,
         progress=progress,
         keep_history=keep_history,
+        on_overflow=grow,
     )

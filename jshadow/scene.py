@@ -89,6 +89,7 @@ from .visibility._edgescan import always, staged
 
 __all__ = [
     "RenderResult",
+    "grow_slots",
     "occlusion_table",
     "scene_bsvs",
     "occluder_bsv",
@@ -335,6 +336,7 @@ def _concrete(x):
 
 _SLOTS: dict = {}
 _PENDING: dict = {}  # topology -> the lazy measurement of a concrete shape seen with it, not yet run
+_REMEASURE: list = []  # non-empty while grow_slots runs: measure again and keep the largest
 
 
 def _cached_slots(kind: str, occ: MeshOccluder, faces: np.ndarray, m, measure, merge, none, *, lazy=False):
@@ -362,6 +364,15 @@ def _cached_slots(kind: str, occ: MeshOccluder, faces: np.ndarray, m, measure, m
                 return _cached_slots(kind, seen, faces, m, measure, merge, none, lazy=lazy)
         return _SLOTS.get(topo, none)
     key = (*topo, hash(unit.tobytes()))
+    if _REMEASURE and (key in _SLOTS or topo in _SLOTS):  # grow_slots: these poses, merged in
+        with jax.core.eval_context():
+            fresh = measure(_poses(occ, unit, m))
+        old = _SLOTS.get(key)
+        _SLOTS[key] = fresh if old is None else merge(old, fresh)
+        _SLOTS[topo] = merge(_SLOTS.get(topo, _SLOTS[key]), _SLOTS[key])
+        if _SLOTS[key] != old:
+            _REMEASURE.append(kind)
+        return _SLOTS[key]
     if key in _SLOTS:
         return _SLOTS[key]
     poses = _poses(occ, unit, m)
@@ -377,6 +388,32 @@ def _cached_slots(kind: str, occ: MeshOccluder, faces: np.ndarray, m, measure, m
         _PENDING.setdefault(topo, run)
         return run
     return run()
+
+
+def grow_slots(scene: Scene) -> bool:
+    """Measure the static sizes in use for ``scene``'s mesh occluders again, on its poses as they
+    are now, and keep the largest of the old and new sizes; True if any grew.
+
+    Sizes are measured on concrete poses (the rest pose and five of the animation). A pose reached
+    under a trace (a fitted deformation amount, per-vertex offsets) may need more, and the traced
+    call then raises an overflow; :func:`jshadow.optim.fit_params` calls this with the scene at the
+    current parameters and traces its step again (with the grown sizes) when that happens.
+    ``scene`` must be concrete. Sizes never measured for a topology are left to their first use.
+    """
+    m = scene.method
+    _REMEASURE[:] = [None]  # non-empty: _cached_slots measures again
+    try:
+        for occ in scene.occluders:
+            faces = _concrete(occ.faces) if isinstance(occ, MeshOccluder) else None
+            if faces is None or _concrete(occ.unit_vertices) is None:
+                continue
+            _slots(occ, faces, m)
+            _edgescan_slots(occ, faces, m)
+            _image_grad_slots(occ, faces, m)
+            _scan_grad_slots(occ, faces, m)
+        return len(_REMEASURE) > 1
+    finally:
+        _REMEASURE.clear()
 
 
 def _poses(occ: MeshOccluder, unit: np.ndarray, m) -> list[np.ndarray]:

@@ -181,3 +181,80 @@ def test_fit_minimises_a_quadratic_and_validates():
         fit(lambda p: jnp.sum(p[0] ** 2), [jnp.zeros(3)], steps=0)
     with pytest.raises(ValueError, match="light sets"):
         fit_params(lambda p: _scene(p[0]), [jnp.zeros(3)], jnp.zeros((64, 3)), light_sets=[()])
+
+
+def test_fit_retraces_after_an_overflow_the_callback_grows():
+    # A loss whose static size (read when the step is traced) is too small for a parameter beyond
+    # it raises an equinox overflow at run time; the callback grows the size and the step is
+    # traced again. Without a callback, or when it reports no growth, the error propagates.
+    import equinox as eqx
+
+    size = {"limit": 1.0}
+    calls = []
+
+    def loss_fn(p):
+        limit = size["limit"]  # static: read at trace time
+        x = eqx.error_if(p[0], jnp.abs(p[0]) > limit, "slots overflowed (test)")
+        return jnp.sum((x - 3.0) ** 2)
+
+    def grow(params):
+        calls.append(float(np.asarray(params[0])))
+        size["limit"] = abs(calls[-1]) + 0.5
+        return True
+
+    res = fit(loss_fn, [jnp.zeros(())], steps=120, learning_rate=0.1, on_overflow=grow)
+    np.testing.assert_allclose(float(res.params[0]), 3.0, atol=0.05)
+    # the limit grows by about 0.5 per overflow on the way to 3: four growths, each at a parameter
+    # past the limit then in force, each at its own step
+    assert len(calls) == len(res.retraced) == 4 and calls[0] > 1.0 and np.all(np.diff(calls) > 0.4)
+    assert res.retraced == sorted(set(res.retraced))
+    size["limit"] = 1.0
+    with pytest.raises(eqx.EquinoxRuntimeError, match="overflowed"):
+        fit(loss_fn, [jnp.zeros(())], steps=60, learning_rate=0.1)
+    size["limit"] = 1.0
+    with pytest.raises(eqx.EquinoxRuntimeError, match="overflowed"):
+        fit(loss_fn, [jnp.zeros(())], steps=60, learning_rate=0.1, on_overflow=lambda p: False)
+
+
+def test_mesh_fit_grows_sizes_a_traced_pose_overflows(monkeypatch):
+    # The image derivative's static sizes are measured on concrete poses; a fitted deformation
+    # amount is traced, and a pose beyond those measured overflows them. fit_params then measures
+    # the scene again at the current parameters (grow_slots) and retraces the step. Here the
+    # measured sizes are replaced by ones far too small, so the first step must overflow.
+    import trimesh
+
+    from jshadow import optim
+    from jshadow import scene as scene_module
+    from jshadow.entities import MeshOccluder
+    from jshadow.geometry import Bend, normalize_to_unit_sphere
+    from jshadow.scene import _image_grad_slots
+
+    ico = trimesh.creation.icosphere(subdivisions=1)
+    unit = normalize_to_unit_sphere(jnp.asarray(ico.vertices, jnp.float32))
+    faces = jnp.asarray(ico.faces, jnp.int32)
+    method = Method(bsv_grid=(6, 10), directions=(12, 12))  # shell 1.5: the image derivative
+
+    def make_scene(p):
+        occ = MeshOccluder(unit, faces, jnp.asarray([0.0, 1.0, 0.0]), jnp.float32(0.6), Bend(p[0]))
+        base = _scene([0.5, 3.0, 0.3])
+        return Scene(method, base.receivers, (occ,), base.lights, base.environment)
+
+    target = plane_radiance(make_scene([jnp.float32(0.9)]))
+    occ = make_scene([jnp.float32(0.3)]).occluders[0]
+    good = _image_grad_slots(occ, np.asarray(faces), method)
+    keys = [k for k in scene_module._SLOTS if k[0] == "image" and k[2] == hash(np.asarray(faces).tobytes())]
+    assert keys
+    for k in keys:
+        scene_module._SLOTS[k] = tuple(1 for _ in good)
+    grew = []
+
+    def counting(scene):
+        grew.append(scene_module.grow_slots(scene))
+        return grew[-1]
+
+    monkeypatch.setattr(optim, "grow_slots", counting)
+    res = fit_params(make_scene, [jnp.float32(0.3)], target, steps=3, optimizer=optax.adam(0.05))
+    assert len(res.loss) == 3 and np.isfinite(res.loss).all()
+    assert grew[:1] == [True] and res.retraced[:1] == [0]  # the first step overflowed, sizes grew
+    grown = _image_grad_slots(occ, np.asarray(faces), method)
+    assert all(g >= 2 for g in grown) and grown != tuple(1 for _ in good)
