@@ -380,6 +380,8 @@ def cmd_fit(args) -> int:
         "history": res.history,
         "steps": steps,
         "learning_rate": fit.learning_rate,
+        "retraced": res.retraced,  # steps traced again after a static-size overflow
+        "bsv_images": scene0.method.bsv_images,  # what [method] bsv_images = "auto" chose
     }
     _save_json(out / "fit.json", report)
     _loss_plot(out / "loss.png", res.loss)

@@ -18,8 +18,9 @@ from test_image_lookup_grad import _tapered_scene
 from test_light_images import IMAGES, LIGHT
 from test_scene import icosphere_occluder, plane
 
-from jshadow.config import ConfigError, config_from_dict
+from jshadow.config import ConfigError, build_scene, config_from_dict
 from jshadow.entities import Environment, Method, Scene
+from jshadow.geometry import MeshWarning
 from jshadow.runner import Renderer
 from jshadow.scene import render
 from jshadow.visibility import bsv_mesh_edgescan, coverage_sh, scan_coverage
@@ -98,6 +99,7 @@ def test_bsv_images_key_is_read_and_checked():
     assert config_from_dict({**base, "method": {"bsv_images": "coverage"}}).method.to_method().bsv_images == (
         "coverage"
     )
+    assert config_from_dict(base).method.bsv_images == "auto"
     assert config_from_dict(base).method.to_method().bsv_images == "samples"
     with pytest.raises(ConfigError, match="bsv_images"):
         config_from_dict({**base, "method": {"bsv_images": "area"}})
@@ -117,3 +119,32 @@ def test_a_mesh_the_edge_scan_cannot_sample_is_refused_with_the_coverage_bsv():
     scene = Scene(method, plane(n=4), (occ,), (LIGHT,), Environment(jnp.full(3, 0.3, jnp.float32)))
     with pytest.raises(ValueError, match="edge-scan"):
         render(scene)
+
+
+def test_bsv_images_auto_is_coverage_where_a_config_fits_a_mesh_deformation(tmp_path):
+    # "auto" (the config default): the coverage BSV where [fit] fits a mesh's deformation and the
+    # edge-scan applies; the samples for rendering alone, fitted lights, the paper's shell, an
+    # explicit choice and an open mesh.
+    (tmp_path / "open.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 2\nf 1 3 2\nf 1 2 4\nf 1 4 3\n")
+    egg = {"type": "mesh", "shape": "egg", "subdivisions": 1, "center": [0, 1, 0], "radius": 0.5}
+    egg["deform"] = {"type": "bend", "amount": 0.3}
+    base = {
+        "occluder": [egg],
+        "light": [{"type": "sphere", "center": [0.5, 3, 0.3], "radius": 0.3, "radiance": [9, 9, 9]}],
+        "receiver": {"type": "plane", "center": [0, 0, 0], "size": [2, 2], "resolution": [2, 2]},
+    }
+    bend = {"params": ["occluder.0.deform.amount"], "target_values": [0.8]}
+    light = {"params": ["light.0.center"], "target_values": [[0.0, 3.0, 0.0]]}
+
+    def chosen(d):
+        return build_scene(config_from_dict(d, root=tmp_path)).method.bsv_images
+
+    assert chosen({**base, "fit": bend}) == "coverage"
+    assert chosen(base) == "samples"
+    assert chosen({**base, "fit": light}) == "samples"
+    assert chosen({**base, "fit": bend, "method": {"preset": "paper"}}) == "samples"
+    assert chosen({**base, "fit": bend, "method": {"bsv_gradient": "image"}}) == "samples"
+    assert chosen({**base, "fit": bend, "method": {"bsv_images": "samples"}}) == "samples"
+    opened = {"type": "mesh", "file": "open.obj", "center": [2, 1, 0], "radius": 0.3}
+    with pytest.warns(MeshWarning, match="open"):
+        assert chosen({**base, "occluder": [egg, opened], "fit": bend}) == "samples"

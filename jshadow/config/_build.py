@@ -173,6 +173,30 @@ def _occluder(config: Config, i: int, occ: OccluderConfig, dtype):
     )
 
 
+def _bsv_images(config: Config, occluders: tuple) -> str:
+    """What ``[method] bsv_images = "auto"`` means for this config: "coverage" if its ``[fit]`` fits
+    a mesh occluder's deformation (a parameter path ``occluder.<i>.deform…``) and the coverage BSV
+    applies (shell > 1, ``bsv_gradient = "auto"``, every mesh closed and consistently wound), else
+    "samples". The coverage BSV makes the fitted loss continuous in the shape and its gradient the
+    exact derivative of that loss (BENCHMARKS.md, "Fitting": the bend fit reaches its target where
+    the samples' staircase stalls it 1.4 % short); rendering alone keeps the cheaper samples."""
+    from ..geometry import mesh_is_closed_manifold
+
+    m = config.method
+    meshes = [o for o in occluders if isinstance(o, MeshOccluder)]
+    fitted = set()
+    for path in config.fit.params if config.fit is not None else ():
+        parts = path.split(".")
+        if len(parts) >= 3 and parts[0] == "occluder" and parts[1].isdigit() and parts[2] == "deform":
+            fitted.add(int(parts[1]))
+    if not any(isinstance(occluders[i], MeshOccluder) for i in fitted if i < len(occluders)):
+        return "samples"
+    if not (m.shell > 1.0 and m.bsv_gradient == "auto"):
+        return "samples"
+    closed = all(mesh_is_closed_manifold(np.asarray(o.faces)) for o in meshes)  # faces are concrete
+    return "coverage" if closed else "samples"
+
+
 def build_scene(config: Config) -> Scene:
     """The :class:`jshadow.entities.Scene` that ``config`` describes.
 
@@ -186,6 +210,8 @@ def build_scene(config: Config) -> Scene:
     * Lights: ``SphereLight``; environment: ``Environment`` ("hdr": the lat-long map from
       :func:`jshadow.lights.read_latlong`, rotated by :func:`rotate_latlong_y`).
     * ``n_frames`` = ``[animation] frames``; ``self_shadow`` from ``[receiver]``.
+    * ``[method] bsv_images = "auto"`` (the default) is "coverage" where ``[fit]`` fits a mesh's
+      deformation and the coverage BSV applies, else "samples" (:func:`_bsv_images`).
 
     Traceable and differentiable in every float leaf of ``config`` (``eqx.tree_at`` + ``jax.jvp``).
     Raises :class:`ConfigError` naming the key when a mesh or map cannot be read.
@@ -218,7 +244,7 @@ def build_scene(config: Config) -> Scene:
         else:
             environment = Environment(radiance=radiance, kind=ec.type)
     return Scene(
-        method=config.method.to_method(),
+        method=config.method.to_method(_bsv_images(config, occluders)),
         receivers=receivers,
         occluders=occluders,
         lights=lights,

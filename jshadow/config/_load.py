@@ -233,7 +233,7 @@ def _method(t: _Table) -> MethodConfig:
         light_visibility=t.string("light_visibility", "sh", choices=LIGHT_VISIBILITIES),
         light_cap=t.integers("light_cap", 2, [4, 8], lo=1),
         light_images=t.string("light_images", "samples", choices=LIGHT_IMAGES),
-        bsv_images=t.string("bsv_images", "samples", choices=BSV_IMAGES),
+        bsv_images=t.string("bsv_images", "auto", choices=("auto", *BSV_IMAGES)),
         environment_lights=t.integer("environment_lights", 0, lo=0),
         environment_threshold=t.number("environment_threshold", 4.0, check="positive"),
     )

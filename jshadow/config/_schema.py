@@ -102,7 +102,10 @@ class MethodConfig(eqx.Module):
     ``light_visibility`` "sh" | "images" (how mesh occluders shadow sphere lights: the field's SH,
     or rays to the light looked up in the BSV's images), ``light_cap`` (rings, sectors) of those
     rays per light, ``light_images`` "samples" | "coverage" (the images those rays read),
-    ``bsv_images`` "samples" | "coverage" (the images a mesh's BSV is projected from), and
+    ``bsv_images`` "auto" | "samples" | "coverage" (the images a mesh's BSV is projected from; "auto":
+    "coverage" where the config's ``[fit]`` fits a mesh's deformation and every mesh allows it, so
+    that the fitted loss is continuous in the shape and its gradient exact, else "samples"; see
+    :func:`jshadow.config.build_scene`), and
     ``environment_lights`` K (0, or a power of two: the lat-long map's radiance
     above ``environment_threshold`` × its mean split off as K distant lights shadowed through the
     images; :mod:`jshadow.envlights`).
@@ -127,7 +130,7 @@ class MethodConfig(eqx.Module):
     light_visibility: str = eqx.field(static=True, default="sh")
     light_cap: tuple[int, int] = eqx.field(static=True, default=(4, 8))
     light_images: str = eqx.field(static=True, default="samples")
-    bsv_images: str = eqx.field(static=True, default="samples")
+    bsv_images: str = eqx.field(static=True, default="auto")
     environment_lights: int = eqx.field(static=True, default=0)
     environment_threshold: float = eqx.field(static=True, default=4.0)
 
@@ -138,8 +141,11 @@ class MethodConfig(eqx.Module):
             )
         self.to_method()
 
-    def to_method(self) -> Method:
-        """The :class:`jshadow.entities.Method` these options describe."""
+    def to_method(self, bsv_images: str | None = None) -> Method:
+        """The :class:`jshadow.entities.Method` these options describe; ``bsv_images`` replaces
+        "auto" (which alone means "samples")."""
+        if self.bsv_images != "auto":
+            bsv_images = self.bsv_images
         try:
             return Method(
                 sh_bands=self.sh_bands,
@@ -160,7 +166,7 @@ class MethodConfig(eqx.Module):
                 light_visibility=self.light_visibility,
                 light_cap=tuple(self.light_cap),
                 light_images=self.light_images,
-                bsv_images=self.bsv_images,
+                bsv_images=bsv_images or "samples",
                 environment_lights=self.environment_lights,
                 environment_threshold=float(self.environment_threshold),
             )
