@@ -88,8 +88,8 @@ def _scene(path: str, bsv_gradient: str, light_visibility: str = "sh"):
     d = tomllib.loads((ROOT / path).read_text())
     if bsv_gradient == "coverage":  # the BSV projected from coverage images: JAX's own derivative
         d.setdefault("method", {})["bsv_images"] = "coverage"
-    else:
-        d.setdefault("method", {})["bsv_gradient"] = bsv_gradient
+    else:  # the samples' BSV (also where a fit config's "auto" would pick the coverage)
+        d.setdefault("method", {}).update(bsv_gradient=bsv_gradient, bsv_images="samples")
     # "coverage": the images' lookups reading the scan lines' coverage (light_images = "coverage")
     d["method"]["light_visibility"] = "images" if light_visibility == "coverage" else light_visibility
     if light_visibility == "coverage":

@@ -13,14 +13,16 @@ direction sample; the script reports the final iterate and the iterate with the 
 Usage (repository root, project environment active)::
 
     python experiments/fit_bend.py [--config configs/fit_bend.toml] [--steps N]
+        [--bsv-images auto|samples|coverage] [--directions N]
 
-Writes ``experiments/results/fit_bend.json`` and ``experiments/figures/fit_bend.png`` (loss curve,
+Writes ``experiments/results/<config stem>.json`` and ``experiments/figures/<config stem>.png`` (loss curve,
 parameter trajectory, before/target/after shading of the plane) and prints a summary.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import datetime
 import json
 import pathlib
@@ -50,9 +52,22 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--config", default=str(ROOT / "configs" / "fit_bend.toml"))
     ap.add_argument("--steps", type=int, default=None)
+    ap.add_argument(
+        "--bsv-images",
+        choices=("auto", "samples", "coverage"),
+        default=None,
+        help="replace the config's [method] bsv_images (results named <config stem>_<value>, and so on)",
+    )
+    ap.add_argument("--directions", type=int, default=None, help="replace [method] directions by N x N")
     args = ap.parse_args()
 
     cfg = load_config(args.config)
+    changes = {}
+    if args.bsv_images is not None:
+        changes["bsv_images"] = args.bsv_images
+    if args.directions is not None:
+        changes["directions"] = (args.directions, args.directions)
+    cfg = dataclasses.replace(cfg, method=dataclasses.replace(cfg.method, **changes))
     path = cfg.fit.params[0]
     steps = args.steps or cfg.fit.steps
     lr = float(cfg.fit.learning_rate)
@@ -75,10 +90,22 @@ def main() -> None:
     before = plane_radiance(make_scene([jnp.asarray(init, jnp.float32)]))
     after = plane_radiance(make_scene(res.params))
     grid = target_scene.receivers.grid_shape
+    rel = str(pathlib.Path(args.config).resolve().relative_to(ROOT))
+    stem = pathlib.Path(args.config).stem  # results and figure named after the config (and changes)
+    stem += "".join(f"_{v[0] if isinstance(v, tuple) else v}" for v in changes.values())
+    stem += f"_{args.steps}steps" if args.steps else ""
+    command = "python experiments/fit_bend.py"
+    command += f" --config {rel}" if rel != "configs/fit_bend.toml" else ""
+    command += (f" --steps {args.steps}" if args.steps else "") + (
+        f" --bsv-images {args.bsv_images}" if args.bsv_images else ""
+    )
+    command += f" --directions {args.directions}" if args.directions else ""
     summary = {
         "experiment": "fit_bend",
-        "command": "python experiments/fit_bend.py",
-        "config": str(pathlib.Path(args.config).resolve().relative_to(ROOT)),
+        "command": command,
+        "bsv_images": target_scene.method.bsv_images,
+        "directions": list(target_scene.method.directions),
+        "config": rel,
         "param": path,
         "init": init,
         "target": truth,
@@ -95,12 +122,13 @@ def main() -> None:
         "wall_s": wall,
         "first_step_s": res.first_step_s,
         "ms_per_step": res.ms_per_step,
+        "retraced": res.retraced,
         "loss": res.loss,
         "trajectory": traj,
         "machine": f"{platform.machine()} {platform.processor() or platform.platform()}",
         "date": datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC"),
     }
-    out_json = ROOT / "experiments" / "results" / "fit_bend.json"
+    out_json = ROOT / "experiments" / "results" / f"{stem}.json"
     out_json.write_text(json.dumps(summary, indent=1) + "\n")
 
     imgs = [luminance_image(x, grid) for x in (before, target, after)]
@@ -119,10 +147,10 @@ def main() -> None:
         a.imshow(im, origin="lower", extent=extent, cmap="gray", vmin=0, vmax=vmax)
         a.set(title=f"{name}: plane radiance", xlabel="x", ylabel="z")
     fig.tight_layout()
-    out_png = ROOT / "experiments" / "figures" / "fit_bend.png"
+    out_png = ROOT / "experiments" / "figures" / f"{stem}.png"
     fig.savefig(out_png, dpi=70)
     print(
-        f"fit_bend: {path} {init:.4g} -> {final:.4f} (target {truth:.4g}, "
+        f"{stem}: {path} {init:.4g} -> {final:.4f} (target {truth:.4g}, "
         f"rel. error {summary['relative_error']:.2%}; lowest-loss iterate {best:.4f}); "
         f"loss {res.loss[0]:.3e} -> {res.loss[-1]:.3e} in {steps} steps; wall {wall:.1f} s "
         f"(first step {res.first_step_s:.1f} s, {res.ms_per_step:.1f} ms/step)"

@@ -20,11 +20,13 @@ true offset is significant, both relative to the RMS of the true offsets.
 Usage (repository root, project environment active)::
 
     python experiments/fit_offsets.py [--steps N] [--weight W] [--lr LR] [--mode free|normal]
+        [--method paper|default|coverage]
 
 ``--mode free`` (default) fits the (V, 3) offsets; ``--mode normal`` fits one scalar per vertex
 along the rest normal (offsets = h_i · n_i), a prior that removes the unseen tangential freedom.
-Writes ``experiments/results/fit_offsets[_normal].json`` and
-``experiments/figures/fit_offsets[_normal].png``.
+``--method`` picks the shadow-field method (the recorded fits used the paper's). Writes
+``experiments/results/fit_offsets[_normal][_METHOD].json`` and
+``experiments/figures/fit_offsets[_normal][_METHOD].png``.
 """
 
 from __future__ import annotations
@@ -48,6 +50,7 @@ from jshadow.config import plane_receivers  # noqa: E402
 from jshadow.entities import Environment, MeshOccluder, Method, Scene, SphereLight  # noqa: E402
 from jshadow.geometry import Offsets, egg, normalize_to_unit_sphere, vertex_normals  # noqa: E402
 from jshadow.optim import fit, laplacian_penalty, plane_radiances, relative_mse  # noqa: E402
+from jshadow.scene import grow_slots  # noqa: E402
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
@@ -60,6 +63,12 @@ PLANE = dict(size=(4.0, 4.0), resolution=(40, 40))
 # (amplitude a, centre direction c, width σ): unit-sphere frame, units of the bounding radius
 BUMPS = [(0.15, (1.0, 0.15, 0.2), 0.45), (-0.10, (-0.3, 0.0, -1.0), 0.4)]
 STEPS, LEARNING_RATE, WEIGHT = 300, 0.004, 1.0
+_SIZES = dict(sh_bands=4, bsv_grid=(8, 12), directions=(16, 16))
+METHODS = {
+    "paper": lambda: Method.paper(**_SIZES),
+    "default": lambda: Method(**_SIZES),
+    "coverage": lambda: Method(bsv_images="coverage", **_SIZES),
+}
 
 
 def true_offsets(unit, normals):
@@ -82,6 +91,13 @@ def main() -> None:
         default="free",
         help="free: (V, 3) offsets; normal: one scalar per vertex along the rest normal",
     )
+    ap.add_argument(
+        "--method",
+        choices=tuple(METHODS),
+        default="paper",
+        help="paper: the paper's method (the recorded fits); default: the default method; coverage: "
+        "the default with the BSV projected from coverage images (bsv_images = 'coverage')",
+    )
     args = ap.parse_args()
 
     f32 = jnp.float32
@@ -91,7 +107,7 @@ def main() -> None:
     normals = np.asarray(vertex_normals(jnp.asarray(unit, f32), jnp.asarray(faces)), np.float64)
     truth = true_offsets(unit, normals)
 
-    method = Method.paper(sh_bands=4, bsv_grid=(8, 12), directions=(16, 16))
+    method = METHODS[args.method]()
     receivers = plane_receivers(
         jnp.zeros(3, f32), jnp.asarray(PLANE["size"], f32), PLANE["resolution"], jnp.full(3, 0.8, f32)
     )
@@ -150,7 +166,14 @@ def main() -> None:
 
     zero = jnp.zeros_like(unit_j)
     t0 = time.perf_counter()
-    res = fit(loss_fn, [init], steps=args.steps, optimizer=optax.adam(args.lr), keep_history=False)
+    res = fit(
+        loss_fn,
+        [init],
+        steps=args.steps,
+        optimizer=optax.adam(args.lr),
+        keep_history=False,
+        on_overflow=lambda p: grow_slots(make_scene(offsets_of(jnp.asarray(p[0])))),
+    )
     wall = time.perf_counter() - t0
     final = np.asarray(offsets_of(res.params[0]), np.float64)
 
@@ -175,8 +198,10 @@ def main() -> None:
         + (f" --steps {args.steps}" if args.steps != STEPS else "")
         + (f" --weight {args.weight}" if args.weight != WEIGHT else "")
         + (f" --lr {args.lr}" if args.lr != LEARNING_RATE else "")
-        + (f" --mode {args.mode}" if args.mode != "free" else ""),
+        + (f" --mode {args.mode}" if args.mode != "free" else "")
+        + (f" --method {args.method}" if args.method != "paper" else ""),
         "mode": args.mode,
+        "method": args.method,
         "mesh": f"egg subdivision {SUBDIVISIONS}: {unit.shape[0]} vertices, {faces.shape[0]} faces",
         "lights": LIGHTS,
         "bumps": BUMPS,
@@ -200,11 +225,13 @@ def main() -> None:
         "wall_s": wall,
         "first_step_s": res.first_step_s,
         "ms_per_step": res.ms_per_step,
+        "retraced": res.retraced,
         "loss": res.loss,
         "machine": f"{platform.machine()} {platform.processor() or platform.platform()}",
         "date": datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC"),
     }
     suffix = "" if args.mode == "free" else f"_{args.mode}"
+    suffix += "" if args.method == "paper" else f"_{args.method}"
     out_json = ROOT / "experiments" / "results" / f"fit_offsets{suffix}.json"
     out_json.write_text(json.dumps(summary, indent=1) + "\n")
 
