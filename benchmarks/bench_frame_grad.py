@@ -4,6 +4,7 @@ Usage::
 
     python benchmarks/bench_frame_grad.py [--configs configs/egg_breathing.toml ...] [--runs 5]
                                           [--light-visibility sh images] [--json out.json]
+                                          [--wrt vertices placement light radiance]
 
 For each config with a deforming mesh (first occluder) at the middle frame, three jitted calls on the
 same receivers:
@@ -22,6 +23,10 @@ same receivers:
 (``images``: the sphere lights' visible fractions looked up in the occlusion images, and their
 derivative through the coverage images; ``coverage``: the same with ``light_images = "coverage"``,
 the scan lines' coverage read bilinearly, whose derivative is exact).
+
+``--wrt`` takes the gradient with respect to other leaves instead of the vertex offsets: the first
+occluder's position (``placement``), the first sphere light's position (``light``) or radiance
+(``radiance``); the forward pass is the same.
 
 ``--ab-plane-first`` instead times, per config and setting, the forward and value_and_grad with the
 field evaluated on the plane and on the own vertices as two calls (``render_at``'s
@@ -69,15 +74,24 @@ def _time(fn, *args, runs):
 _GRADIENTS: dict = {}  # (config, bsv_gradient) -> vertex gradient, to compare the two modes
 
 
-def frame_loss(scene, t):
-    """``L(δ) = Σ w · irradiance`` of :func:`jshadow.scene.render_at` at time t, with per-vertex
-    offsets δ (V, 3) added to the first occluder's rest pose and fixed random weights w (seed 0)."""
-    occ = scene.occluders[0]
+WRT = {  # what δ is added to: the leaf of the scene the gradient is taken with respect to
+    "vertices": lambda s: s.occluders[0].unit_vertices,  # per-vertex offsets of the rest pose (V, 3)
+    "placement": lambda s: s.occluders[0].center,  # the first occluder's position (3,)
+    "light": lambda s: s.lights[0].center,  # the first sphere light's position (3,)
+    "radiance": lambda s: s.lights[0].radiance,  # its radiance (3,)
+}
+
+
+def frame_loss(scene, t, wrt: str = "vertices"):
+    """``L(δ) = Σ w · irradiance`` of :func:`jshadow.scene.render_at` at time t, with δ added to the
+    leaf ``WRT[wrt]`` of the scene (by default per-vertex offsets (V, 3) of the first occluder's rest
+    pose) and fixed random weights w (seed 0)."""
     n_rec = scene.receivers.points.shape[0]
     weights = jnp.asarray(np.random.default_rng(0).uniform(0.5, 1.5, (n_rec, 3)), scene.dtype)
+    where = WRT[wrt]
 
     def loss(delta):
-        s = eqx.tree_at(lambda s: s.occluders[0].unit_vertices, scene, occ.unit_vertices + delta)
+        s = eqx.tree_at(where, scene, where(scene) + delta)
         return jnp.sum(weights * render_at(s, t).irradiance[:n_rec])
 
     return loss
@@ -97,11 +111,16 @@ def _scene(path: str, bsv_gradient: str, light_visibility: str = "sh"):
     return build_scene(config_from_dict(d, source=path, root=(ROOT / path).parent))
 
 
-def bench(path: str, runs: int, bsv_gradient: str = "raycast", light_visibility: str = "sh") -> dict:
+def bench(
+    path: str, runs: int, bsv_gradient: str = "raycast", light_visibility: str = "sh", wrt: str = "vertices"
+) -> dict | None:
     scene = _scene(path, bsv_gradient, light_visibility)
     occ = scene.occluders[0]
     if not isinstance(occ, MeshOccluder):
         raise SystemExit(f"{path}: the first occluder is not a mesh")
+    if wrt in ("light", "radiance") and not scene.lights:
+        print(f"{path}: no sphere light, no gradient with respect to its {wrt}", flush=True)
+        return None
     frame = scene.n_frames // 2
     t = frame_time(frame, scene.n_frames)
     rend = Renderer(scene, progress=False)
@@ -109,9 +128,9 @@ def bench(path: str, runs: int, bsv_gradient: str = "raycast", light_visibility:
     render_ms = float(np.median([rend.frame(frame)[1]["total_ms"] for _ in range(runs)]))
 
     n_rec = scene.receivers.points.shape[0]
-    loss = frame_loss(scene, t)
-    delta = jnp.zeros_like(occ.unit_vertices)
-    loss(delta)  # once with a concrete rest pose: the BSV's static slot sizes are measured on it
+    loss = frame_loss(scene, t, wrt)
+    delta = jnp.zeros_like(WRT[wrt](scene))
+    frame_loss(scene, t)(jnp.zeros_like(occ.unit_vertices))  # concrete: the BSV's slot sizes measured
     c_f, fwd_ms = _time(jax.jit(loss), delta, runs=runs)
     vag = jax.jit(jax.value_and_grad(loss))
     c_g, vag_ms = _time(vag, delta, runs=runs)
@@ -120,6 +139,7 @@ def bench(path: str, runs: int, bsv_gradient: str = "raycast", light_visibility:
         "config": path,
         "bsv_gradient": bsv_gradient,
         "light_visibility": light_visibility,
+        "wrt": wrt,
         "frame": frame,
         "vertices": int(occ.unit_vertices.shape[0]),
         "faces": int(occ.faces.shape[0]),
@@ -134,9 +154,10 @@ def bench(path: str, runs: int, bsv_gradient: str = "raycast", light_visibility:
         "gradient_finite": bool(np.all(np.isfinite(g))),
         "gradient_norm": float(np.linalg.norm(g)),
     }
-    _GRADIENTS[(path, bsv_gradient, light_visibility)] = g
+    if wrt == "vertices":
+        _GRADIENTS[(path, bsv_gradient, light_visibility)] = g
     print(
-        f"{path:32s} {bsv_gradient:8s} {light_visibility:6s} V={row['vertices']:5d} rec={n_rec:6d}"
+        f"{path:32s} {bsv_gradient:8s} {light_visibility:6s} {wrt:9s} V={row['vertices']:5d} rec={n_rec:6d}"
         f"  render {render_ms:7.1f} ms"
         f"  forward {fwd_ms:7.1f} ms"
         f"  value_and_grad {vag_ms:8.1f} ms  backward/forward {row['backward_over_forward']:5.2f}"
@@ -235,6 +256,14 @@ def main(argv=None) -> int:
         help="[method] light_visibility settings to time (same run; 'images' differentiates the lookups, "
         "'coverage' is 'images' with light_images = 'coverage')",
     )
+    ap.add_argument(
+        "--wrt",
+        nargs="*",
+        default=["vertices"],
+        choices=list(WRT),
+        help="the gradient's argument: per-vertex offsets, the occluder's position, the first sphere "
+        "light's position or its radiance (same run)",
+    )
     ap.add_argument("--ab-plane-first", action="store_true", help="time plane_first=True against False")
     args = ap.parse_args(argv)
     load = os.getloadavg()[0]
@@ -242,11 +271,13 @@ def main(argv=None) -> int:
         rows = [ab_plane_first(c, args.runs, g) for c in args.configs for g in args.bsv_gradient]
     else:
         rows = [
-            bench(c, args.runs, g, lv)
+            bench(c, args.runs, g, lv, w)
             for c in args.configs
             for g in args.bsv_gradient
             for lv in args.light_visibility
+            for w in args.wrt
         ]
+        rows = [r for r in rows if r is not None]
         _compare_gradients(args.configs, rows)
     meta = {
         "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),

@@ -85,7 +85,7 @@ from .visibility import (
     scan_coverage,
     vertex_visibility_sh,
 )
-from .visibility._edgescan import always, staged
+from .visibility._edgescan import _traced_default_slots, always, staged
 
 __all__ = [
     "RenderResult",
@@ -364,7 +364,9 @@ def _cached_slots(kind: str, occ: MeshOccluder, faces: np.ndarray, m, measure, m
                 return _cached_slots(kind, seen, faces, m, measure, merge, none, lazy=lazy)
         return _SLOTS.get(topo, none)
     key = (*topo, hash(unit.tobytes()))
-    if _REMEASURE and (key in _SLOTS or topo in _SLOTS):  # grow_slots: these poses, merged in
+    if _REMEASURE:  # grow_slots: measured again on these poses and merged in, if in use
+        if key not in _SLOTS and topo not in _SLOTS:
+            return none  # not in use for this topology: left to its first use
         with jax.core.eval_context():
             fresh = measure(_poses(occ, unit, m))
         old = _SLOTS.get(key)
@@ -726,6 +728,9 @@ def _coverage(occ: MeshOccluder, v, m) -> Float[Array, "T P Ny Nx"]:
         )
     es = _edgescan_slots(occ, faces, m)
     ss = _scan_grad_slots(occ, faces, m)
+    if es is None:  # a traced pose of faces no concrete pose was seen with: no sizes measured, and
+        # no fallback under a trace (an overflow raises), so 4x the edge-scan's generous defaults
+        es = tuple(4 * x for x in _traced_default_slots(faces.shape[0], m.bsv_grid, m.directions))
     # the BSV's: each crossing weighted by its edge's share of its scan, whose derivative is the
     # converged one's within 0.5-2.3 % (the plain mean's 13-39 %, BENCHMARKS.md "BSV from coverage
     # images"); the light images alone keep the mean their figures were measured with

@@ -18,13 +18,14 @@ mesh is sampled at other points, a method error, not rounding).
 """
 
 import dataclasses
+import functools
 import math
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from hypothesis import given
+from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from jshadow.entities import Environment, MeshOccluder, Method, Receivers, Scene, SphereLight, SphereOccluder
@@ -35,6 +36,7 @@ from jshadow.scene import occlusion_table, render_at
 from jshadow.visibility import bsv_mesh
 
 METHOD = Method(sh_bands=3, bsv_grid=(4, 6), directions=(8, 8), shell=1.5)
+COVERAGE = dataclasses.replace(METHOD, bsv_images="coverage")
 ICO = icosphere(1)
 UNIT = np.asarray(ICO.vertices, np.float64)  # (42, 3) on the unit sphere
 FACES = np.asarray(ICO.faces)  # (80, 3)
@@ -162,7 +164,7 @@ def _plane(dtype):
     return np.stack([x.ravel(), np.zeros(x.size), z.ravel()], -1).astype(dtype)
 
 
-def _scene(unit, amount, light_center, extra, rot, offset):
+def _scene(unit, amount, light_center, extra, rot, offset, method=METHOD):
     """The test scene, every position rotated by ``rot`` about the origin and then shifted by
     ``offset``: a twisting mesh, a sphere occluder, a sphere light, a constant environment; plane
     receivers, extra receivers and the mesh's own vertices (self-shadowing)."""
@@ -185,21 +187,21 @@ def _scene(unit, amount, light_center, extra, rot, offset):
     sphere = SphereOccluder(place(jnp.asarray(SPHERE_CENTER, dt)), jnp.asarray(SPHERE_RADIUS, dt))
     light = SphereLight(place(light_center), jnp.asarray(LIGHT_RADIUS, dt), jnp.asarray([5.0, 5.0, 5.0], dt))
     env = Environment(jnp.asarray([1.0, 0.9, 0.8], dt))
-    method = METHOD if dt == jnp.float32 else dataclasses.replace(METHOD, dtype="float64")
+    method = method if dt == jnp.float32 else dataclasses.replace(method, dtype="float64")
     return Scene(method, receivers, (mesh, sphere), (light,), env, self_shadow=True)
 
 
-def _irradiance(unit, amount, light_center, extra, rot, offset):
-    return render_at(_scene(unit, amount, light_center, extra, rot, offset), 0.0).irradiance
+def _irradiance(unit, amount, light_center, extra, rot, offset, method=METHOD):
+    return render_at(_scene(unit, amount, light_center, extra, rot, offset, method), 0.0).irradiance
 
 
 _render = jax.jit(_irradiance)
 
 
-@jax.jit
-def _render_and_grads(unit, amount, light_center, extra, rot, offset):
-    e = _irradiance(unit, amount, light_center, extra, rot, offset)
-    g = jax.grad(lambda *a: _irradiance(*a, rot, offset).sum(), argnums=(0, 1, 2, 3))(
+@functools.partial(jax.jit, static_argnames="method")
+def _render_and_grads(unit, amount, light_center, extra, rot, offset, method=METHOD):
+    e = _irradiance(unit, amount, light_center, extra, rot, offset, method)
+    g = jax.grad(lambda *a: _irradiance(*a, rot, offset, method).sum(), argnums=(0, 1, 2, 3))(
         unit, amount, light_center, extra
     )
     return e, g
@@ -258,6 +260,23 @@ def test_random_meshes_twists_and_lights_give_finite_values_and_gradients(seed, 
     assert _all_finite(e) and _all_finite(grads), (light, collapse)
     assert np.all(np.asarray(e) >= -1e-3 * float(np.abs(e).max()))  # irradiance is not negative
     assert np.abs(np.asarray(grads[0])).max() > 0  # the vertices do move the shadows
+
+
+@given(
+    seed=st.integers(0, 2**31 - 1),
+    amount=st.floats(-2.0, 2.0),
+    light=st.sampled_from(sorted(LIGHTS)),
+    collapse=st.booleans(),
+)
+@settings(max_examples=10)
+def test_the_coverage_bsv_gives_finite_values_and_gradients_on_random_meshes(seed, amount, light, collapse):
+    # bsv_images = "coverage" (the BSV from the scan lines' coverage, JAX's own derivative; what a
+    # fitted deformation gets by default) through the same cases: degenerate faces, lights inside
+    # the occluders, receivers at the centre, on the bounding sphere and shell and on the poles.
+    e, grads = _render_and_grads(*case_args(seed, amount, light, collapse), method=COVERAGE)
+    assert _all_finite(e) and _all_finite(grads), (light, collapse)
+    assert np.all(np.asarray(e) >= -1e-3 * float(np.abs(e).max()))
+    assert np.abs(np.asarray(grads[0])).max() > 0
 
 
 def test_translating_the_scene_changes_nothing_but_rounding():

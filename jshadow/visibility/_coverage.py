@@ -103,7 +103,8 @@ def scan_coverage(
             from coverage images"), "columns" or "rows".
         edge_table, slots: as for :func:`jshadow.visibility.bsv_mesh_edgescan`.
         scan_slots: the scan lines' sizes (:func:`jshadow.visibility.edgescan_scan_slots`); None
-            measures them on ``vertices``, which must then be concrete.
+            measures them on concrete ``vertices``, and for traced ones takes the column scan's
+            ``slots`` for the rows and keeps every crossing (generous, slower).
 
     Concrete vertices that overflow the static sizes run again with them grown to 1.25× the counts
     the pose needed (remembered for later calls with the same sizes, as the edge-scan's own
@@ -118,14 +119,12 @@ def scan_coverage(
         vertices, faces_np, grid, directions, shell, edge_table, slots
     )
     traced = isinstance(vertices, jax.core.Tracer)
-    if scan_slots is None:
-        if traced:
-            raise TypeError("scan_coverage of traced vertices needs scan_slots measured on a concrete pose")
+    if scan_slots is None and not traced:
         scan_slots = edgescan_scan_slots(
             vertices, faces_np, grid, directions, shell, edge_table=table, slots=slots
         )
     cap, _ = _slot_bounds(table, grid, directions)
-    scan_slots = _check_scan_slots(tuple(scan_slots), slots, cap, directions)
+    scan_slots = _check_scan_slots(None if scan_slots is None else tuple(scan_slots), slots, cap, directions)
     key = (_grown_key(table, grid, directions, shell, slots), scan_slots)
     slots, scan_slots = _GROWN.get(key, (slots, scan_slots))
     if traced:
