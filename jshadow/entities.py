@@ -143,7 +143,10 @@ class Method:
     gradient's backward / forward 0.4–1.2× on the deforming configs, against 3.4–18× (BENCHMARKS.md
     "BSV from coverage images"). The forward pass costs the scan lines' boundary crossings: a
     deforming frame about 3× the default's. Needs the edge-scan (shell > 1, closed meshes);
-    ``bsv_gradient`` must stay "auto".
+    ``bsv_gradient`` must stay "auto". Use it for gradient work: a loss through the samples is a
+    staircase in the shape, which stalls fits (a bend fit stops at 0.63 for a target of 0.8, where
+    the coverage's reaches 0.80000; BENCHMARKS.md "Fitting"). A config whose ``[fit]`` fits a mesh's
+    deformation gets it by default (``bsv_images = "auto"`` in configs).
 
     ``environment_lights`` K > 0 (a power of two; needs ``light_visibility = "images"``) splits a
     lat-long environment at ``environment_threshold`` × its mean luminance: the rest keeps the

@@ -193,7 +193,7 @@ def mesh_bsv(occ: MeshOccluder, t, scene: Scene, differentiable: bool = True) ->
     m = scene.method
     t = jnp.asarray(t, occ.unit_vertices.dtype)  # an array: one compile for all t
     if m.bsv_images == "coverage":
-        v = bsv_input_vertices(occ, _vertices_at(occ, t), m)
+        v = _sampler_vertices(occ, t, m)
         return _coverage_bsv(occ, v, _coverage(occ, v, m), m)
     kw = dict(n=m.field_bands, grid=m.bsv_grid, directions=m.directions, shell=m.shell)
     faces = _concrete(occ.faces)
@@ -204,24 +204,25 @@ def mesh_bsv(occ: MeshOccluder, t, scene: Scene, differentiable: bool = True) ->
         return bsv_mesh_edgescan_of(
             _deformed_anchored if anchored else _deformed, (occ, t), faces, *shape, **kw
         )
-    v = bsv_input_vertices(occ, _vertices_at(occ, t), m)
+    v = _sampler_vertices(occ, t, m)
     if not differentiable:
-        return bsv_mesh(v, occ.faces, method=m.bsv_method, **kw)
+        return _with_center_motion(occ, bsv_mesh(v, occ.faces, method=m.bsv_method, **kw))
     center, radius = _bsv_sphere(occ, v, m)
     coeffs = _differentiable_coeffs(occ, v, faces, m, kw)
     return BSV(coeffs=coeffs, center=center, radius=radius, shell_radius=m.shell * radius)
 
 
 def _bsv_sphere(occ: MeshOccluder, v, m):
-    """The bounding sphere (centre, radius) of the sampler's input vertices ``v``, the centre taken
-    as ``occ.center`` itself where it is placed (:func:`_placed`): the same centre (up to one
+    """The bounding sphere (centre, radius) of the sampler's input vertices ``v``
+    (:func:`_sampler_vertices`), the centre carrying the occluder centre's derivative. Where it is
+    placed (:func:`_placed`) the centre is ``occ.center`` itself: the same centre (up to one
     rounding), but with no dependence on the vertices — the box centre of the anchored vertices has
     an identically zero vertex derivative that reverse mode would still carry through every
     receiver's direction and SH rotation."""
     center, radius = bounding_sphere(v)
     if _placed(occ, m):
-        center = jnp.asarray(occ.center, v.dtype)
-    return center, radius
+        return jnp.asarray(occ.center, v.dtype), radius
+    return center + _center_motion(occ, v.dtype), radius
 
 
 def _placed(occ: MeshOccluder, m) -> bool:
@@ -249,6 +250,37 @@ def _deformed(occ: MeshOccluder, t) -> Float[Array, "V 3"]:
 def _deformed_anchored(occ: MeshOccluder, t) -> Float[Array, "V+6 3"]:
     """:func:`_deformed` with the anchors of the placed centre (:func:`bsv_input_vertices`)."""
     return with_center_anchors(occ.vertices(t), occ.center)
+
+
+def _sampler_vertices(occ: MeshOccluder, t, m) -> Float[Array, "W 3"]:
+    """What the BSV's samplers (coefficients, occlusion and coverage images) are given at time t:
+    :func:`bsv_input_vertices` of the world vertices, with the occluder's centre held constant for
+    differentiation (``lax.stop_gradient``; W = V or V + 6).
+
+    The samplers' outputs do not change under a translation (they sample on a shell about the
+    input's own sphere), so the centre's derivative (moving the occluder) would reach their
+    derivative machinery — the silhouette terms of the BSV's — only to give zero; held constant, it
+    does not enter them at all, and the values are bitwise those of the world vertices. The
+    sphere's centre gets its derivative back in :func:`_bsv_sphere` and :func:`_with_center_motion`
+    (BENCHMARKS.md, "Every parameter's frame gradient, and moving an occluder": the position's
+    frame gradient 3–7× cheaper)."""
+    c = jax.lax.stop_gradient(occ.center)
+    x = occ.unit_vertices if occ.deform is None else occ.deform(occ.unit_vertices, t)
+    v = c + occ.radius * x  # occ.vertices(t), bitwise
+    return with_center_anchors(v, c) if _placed(occ, m) else v
+
+
+def _center_motion(occ: MeshOccluder, dtype) -> Float[Array, "3"]:
+    """``occ.center - stop_gradient(occ.center)``: zero, with the centre's derivative, which a
+    sphere found from :func:`_sampler_vertices` adds back to its centre."""
+    c = jnp.asarray(occ.center, dtype)
+    return c - jax.lax.stop_gradient(c)
+
+
+def _with_center_motion(occ: MeshOccluder, obj):
+    """A sampler's BSV or occlusion images of :func:`_sampler_vertices`, its centre carrying the
+    occluder centre's derivative again (the values are unchanged)."""
+    return eqx.tree_at(lambda o: o.center, obj, obj.center + _center_motion(occ, obj.center.dtype))
 
 
 def _differentiable_coeffs(occ: MeshOccluder, v, faces: np.ndarray | None, m, kw):
@@ -695,7 +727,7 @@ def occluder_images(occ, t, scene: Scene, differentiable: bool = True) -> Occlus
     if not isinstance(occ, MeshOccluder):
         return None
     m = scene.method
-    v = bsv_input_vertices(occ, _vertices_at(occ, jnp.asarray(t, occ.unit_vertices.dtype)), m)
+    v = _sampler_vertices(occ, jnp.asarray(t, occ.unit_vertices.dtype), m)
     faces = occ.faces
     if m.light_images == "coverage":
         return _coverage_images(occ, v, m)
@@ -704,11 +736,11 @@ def occluder_images(occ, t, scene: Scene, differentiable: bool = True) -> Occlus
         return occlusion_images(x, faces, tuple(m.bsv_grid), tuple(m.directions), float(m.shell))
 
     if not differentiable:
-        return _no_derivative_guard(forward, v, LIGHT_IMAGES_NO_DERIVATIVE)
+        return _with_center_motion(occ, _no_derivative_guard(forward, v, LIGHT_IMAGES_NO_DERIVATIVE))
     faces_np = _concrete(faces)
     if isinstance(v, jax.core.Tracer) and faces_np is not None and _uses_edgescan(m, faces_np):
         return _mesh_bsv_and_images(occ, v, faces_np, m)[1]
-    img = _no_derivative_guard(forward, v)
+    img = _with_center_motion(occ, _no_derivative_guard(forward, v))
     return OcclusionImages(
         occluded=img.occluded.astype(v.dtype), center=img.center, radius=img.radius, shell=img.shell
     )
@@ -777,15 +809,16 @@ def occluder_bsv_and_images(occ: MeshOccluder, t, scene: Scene) -> tuple[BSV, Oc
     m = scene.method
     faces = _concrete(occ.faces)
     if m.bsv_images == "coverage" and m.light_images == "coverage":  # one coverage for both
-        v = bsv_input_vertices(occ, _vertices_at(occ, jnp.asarray(t, occ.unit_vertices.dtype)), m)
+        v = _sampler_vertices(occ, jnp.asarray(t, occ.unit_vertices.dtype), m)
         cov = _coverage(occ, v, m)
         return _coverage_bsv(occ, v, cov, m), _coverage_images(occ, v, m, cov)
     if faces is None or not _uses_edgescan(m, faces) or "coverage" in (m.light_images, m.bsv_images):
         return None
-    v = bsv_input_vertices(occ, _vertices_at(occ, jnp.asarray(t, occ.unit_vertices.dtype)), m)
+    v = _sampler_vertices(occ, jnp.asarray(t, occ.unit_vertices.dtype), m)
     if _concrete(v) is None:
         return None
-    return bsv_with_occlusion_images(v, faces, m.field_bands, m.bsv_grid, m.directions, m.shell)
+    bsv, img = bsv_with_occlusion_images(v, faces, m.field_bands, m.bsv_grid, m.directions, m.shell)
+    return _with_center_motion(occ, bsv), _with_center_motion(occ, img)
 
 
 def scene_images(scene: Scene, t) -> tuple[OcclusionImages | None, ...] | None:
@@ -815,7 +848,7 @@ def scene_bsvs_and_images(
         one_pass = faces is not None and m.light_images == "samples"  # coverage: its own scan pass
         one_pass = one_pass and m.bsv_images == "samples"
         if one_pass and _uses_edgescan(m, faces) and bsv_gradient_mode(m, faces) == "image":
-            v = bsv_input_vertices(occ, _vertices_at(occ, jnp.asarray(t, occ.unit_vertices.dtype)), m)
+            v = _sampler_vertices(occ, jnp.asarray(t, occ.unit_vertices.dtype), m)
             if isinstance(v, jax.core.Tracer):
                 bsv, img = _mesh_bsv_and_images(occ, v, faces, m)
                 bsvs.append(bsv)
