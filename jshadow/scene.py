@@ -451,18 +451,22 @@ def grow_slots(scene: Scene) -> bool:
 
 
 def _poses(occ: MeshOccluder, unit: np.ndarray, m) -> list[np.ndarray]:
-    """The rest pose ``unit`` and, if the occluder is concrete (no traced deformation parameter),
-    five poses of its animation (t = 0 … 1), as numpy arrays, each as the BSV's sampler is given
-    it (:func:`bsv_input_vertices`)."""
+    """The rest pose ``unit`` and, if the deformation is concrete (no traced parameter), five poses
+    of its animation (t = 0 … 1), as numpy arrays, each as the BSV's sampler is given it
+    (:func:`bsv_input_vertices`) but in the unit frame: the sampled images, hence the sizes, do not
+    change under a translation or a scale, so a traced centre or radius (moving the occluder) still
+    has its animation measured."""
     poses = [unit]
-    if occ.deform is None or any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(occ)):
+    if occ.deform is None or any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(occ.deform)):
         return poses
     with jax.core.eval_context():  # concrete also while a caller is being traced
-        if _placed(occ, m):  # as the BSV sees them: anchored about the placed centre
-            poses = [np.asarray(with_center_anchors(unit, jnp.zeros(3, unit.dtype)))]
+        zero = jnp.zeros(3, unit.dtype)
+        anchored = _placed(occ, m)  # as the BSV sees them: anchored about the placed centre
+        if anchored:
+            poses = [np.asarray(with_center_anchors(unit, zero))]
         for t in np.linspace(0.0, 1.0, 5):
-            v = _vertices_at(occ, jnp.asarray(t, occ.unit_vertices.dtype))
-            poses.append(np.asarray(bsv_input_vertices(occ, v, m)))
+            x = occ.deform(jnp.asarray(unit), jnp.asarray(t, unit.dtype))
+            poses.append(np.asarray(with_center_anchors(x, zero) if anchored else x))
     return poses
 
 

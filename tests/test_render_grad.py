@@ -389,3 +389,28 @@ def test_plane_and_own_vertices_evaluated_apart_give_the_same_field_and_gradient
     monkeypatch.setattr(sc, "occluder_visibilities", lambda *a, **k: seen.append(k) or original(*a, **k))
     jax.eval_shape(lambda: sc.render_at(scene, 0.0))
     assert seen == [{"plane_first": True}]
+
+
+def test_a_traced_position_still_measures_the_animation_poses():
+    # The sizes are measured on the rest pose and five poses of the animation; only a traced
+    # deformation parameter limits them to the rest pose. A traced centre or radius (moving the
+    # occluder) does not change the sampled images, so its animation is still measured.
+    from jshadow.scene import _poses
+
+    occ = scene_with(StretchY(jnp.float32(0.3))).occluders[0]
+    unit = np.asarray(occ.unit_vertices)
+    method = Method(bsv_grid=(8, 12), directions=(16, 16))
+    counts = {}
+
+    @jax.jit
+    def traced(center, radius, a):
+        counts["placement"] = len(
+            _poses(eqx.tree_at(lambda o: (o.center, o.radius), occ, (center, radius)), unit, method)
+        )
+        counts["deformation"] = len(_poses(eqx.tree_at(lambda o: o.deform.a, occ, a), unit, method))
+        return center
+
+    traced(occ.center, occ.radius, occ.deform.a)
+    assert counts == {"placement": 6, "deformation": 1}
+    stretched = _poses(occ, unit, method)[-1]  # t = 1, the unit frame: y stretched by 1.3
+    np.testing.assert_allclose(np.ptp(stretched[: len(unit), 1]), 1.3 * np.ptp(unit[:, 1]), rtol=1e-5)
