@@ -355,6 +355,12 @@ def cmd_fit(args) -> int:
             fit.target_image, scene0, plane_radiance(build_scene(with_params(init)), frame)
         )
     out = _make_out(args.out)
+    if cfg.method.bsv_images == "auto" and scene0.method.bsv_images == "coverage":
+        print(
+            "fit: [method] bsv_images = 'auto' is 'coverage' here (a mesh's deformation is fitted: "
+            "the loss is continuous in the shape and its gradient exact)",
+            file=sys.stderr,
+        )
     try:
         res = fit_params(
             lambda v: build_scene(with_params(v)),

@@ -122,8 +122,27 @@ def test_fit_writes_its_outputs_and_reduces_the_loss(tmp_path):
     rep = json.loads((tmp_path / "f" / "fit.json").read_text())
     assert set(rep["params"]) == {"light.0.center"} and len(rep["loss"]) == 8
     assert rep["loss"][-1] < rep["loss"][0]
+    assert rep["bsv_images"] == "samples" and rep["retraced"] == []  # a light: no mesh shape fitted
     for name in ("loss.png", "before.png", "after.png", "target.png"):
         assert (tmp_path / "f" / name).stat().st_size > 1000
+
+
+def test_fit_of_a_mesh_deformation_takes_the_coverage_bsv_and_says_so(tmp_path, capsys):
+    cfg = tmp_path / "bend.toml"
+    cfg.write_text(
+        "[method]\nsh_bands = 3\nbsv_grid = [4, 6]\ndirections = [8, 8]\n"
+        '[environment]\ntype = "constant"\nradiance = [0.3, 0.3, 0.3]\n'
+        '[[occluder]]\ntype = "mesh"\nshape = "egg"\nsubdivisions = 1\ncenter = [0.0, 1.1, 0.0]\n'
+        'radius = 0.8\ndeform = { type = "bend", amount = 0.4, axis = "y", toward = "x" }\n'
+        '[[light]]\ntype = "sphere"\ncenter = [0.5, 3.0, 0.3]\nradius = 0.3\nradiance = [20.0, 20.0, 20.0]\n'
+        '[receiver]\ntype = "plane"\ncenter = [0.0, 0.0, 0.0]\nsize = [4.0, 4.0]\nresolution = [8, 8]\n'
+        '[fit]\nparams = ["occluder.0.deform.amount"]\ntarget_values = [0.8]\nsteps = 4\n'
+    )
+    assert main(["fit", str(cfg), "--out", str(tmp_path / "f")]) == 0
+    assert "bsv_images = 'auto' is 'coverage'" in capsys.readouterr().err
+    rep = json.loads((tmp_path / "f" / "fit.json").read_text())
+    assert rep["bsv_images"] == "coverage" and len(rep["loss"]) == 4
+    assert rep["loss"][-1] < rep["loss"][0]
 
 
 def test_bench_prints_stages_and_error_and_writes_json(tmp_path, scene_file, capsys):
