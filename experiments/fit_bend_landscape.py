@@ -25,7 +25,6 @@ import json
 import pathlib
 import platform
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import matplotlib
@@ -35,7 +34,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 from jshadow.config import build_scene, load_config, set_param  # noqa: E402
-from jshadow.optim import plane_radiance, relative_mse  # noqa: E402
+from jshadow.optim import jit_growing, plane_radiance, relative_mse  # noqa: E402
 from jshadow.scene import grow_slots  # noqa: E402
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
@@ -52,19 +51,10 @@ def landscape(cfg, path: str, truth: float, amounts: np.ndarray) -> dict:
     def loss(a):
         return relative_mse(plane_radiance(make_scene(a)), target)
 
-    vag = eqx.filter_jit(jax.value_and_grad(loss))
-    values, grads, grown = [], [], 0
+    vag = jit_growing(jax.value_and_grad(loss), lambda a: grow_slots(make_scene(a)))
+    values, grads = [], []
     for a in amounts:
-        for _ in range(4):
-            try:
-                v, g = vag(jnp.float32(a))
-                jax.block_until_ready(g)
-                break
-            except eqx.EquinoxRuntimeError as err:
-                if "overflowed" not in str(err) or not grow_slots(make_scene(jnp.float32(a))):
-                    raise
-                vag = eqx.filter_jit(jax.value_and_grad(lambda x: loss(x)))  # fresh trace: grown sizes
-                grown += 1
+        v, g = vag(jnp.float32(a))
         values.append(float(v))
         grads.append(float(g))
     values, grads = np.asarray(values), np.asarray(grads)
@@ -83,7 +73,7 @@ def landscape(cfg, path: str, truth: float, amounts: np.ndarray) -> dict:
             np.sqrt(np.mean((g_mid - fd) ** 2)) / np.sqrt(np.mean(fd**2))
         ),
         "loss_local_minima": int(np.sum((values[1:-1] < values[:-2]) & (values[1:-1] < values[2:]))),
-        "size_growths": grown,
+        "size_growths": vag.retraces,
     }
 
 

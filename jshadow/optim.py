@@ -42,6 +42,7 @@ __all__ = [
     "uniform_laplacian",
     "fit",
     "fit_params",
+    "jit_growing",
 ]
 
 
@@ -165,6 +166,33 @@ def laplacian_penalty(offsets: Float[Array, "... V 3"], faces: Faces) -> Float[A
     return jnp.mean(jnp.sum(lap * lap, axis=-1), axis=-1)
 
 
+def jit_growing(fn: Callable, on_overflow: Callable[..., bool] | None = None, tries: int = 3) -> Callable:
+    """``eqx.filter_jit(fn)`` that outgrows the static sizes of the traced poses it meets.
+
+    When a call raises a static-size overflow (an ``equinox.EquinoxRuntimeError`` whose message says
+    "overflowed": a traced pose needs more slots than were measured) and ``on_overflow(*args)``
+    returns True (the sizes grew, e.g. :func:`jshadow.scene.grow_slots` of the scene at these
+    arguments), ``fn`` is traced again and the call retried, at most ``tries`` times per call;
+    otherwise the error propagates. Each call blocks until its result is ready (the error is raised
+    at run time). The returned function counts its retraces in ``.retraces``.
+    """
+    jitted = [eqx.filter_jit(fn)]
+
+    def call(*args):
+        for attempt in range(tries + 1):
+            try:
+                return jax.block_until_ready(jitted[0](*args))
+            except eqx.EquinoxRuntimeError as err:
+                grown = on_overflow is not None and attempt < tries and "overflowed" in str(err)
+                if not (grown and on_overflow(*args)):
+                    raise
+                jitted[0] = eqx.filter_jit(lambda *a: fn(*a))  # a new function: a fresh trace
+                call.retraces += 1
+
+    call.retraces = 0
+    return call
+
+
 def fit(
     loss_fn: Callable[[list], Float[Array, ""]],
     init: Sequence,
@@ -182,10 +210,8 @@ def fit(
     step. ``init`` values are cast to ``dtype``. Raises ``ValueError`` for ``steps < 1``.
 
     ``on_overflow(params)``, if given, is called with the current (concrete) parameters when a step
-    raises a static-size overflow (an ``equinox.EquinoxRuntimeError`` whose message says
-    "overflowed": a traced pose needs more slots than were measured); if it returns True (the sizes
-    grew) the step is traced again and retried, at most three times per step; otherwise the error
-    propagates.
+    raises a static-size overflow; if it returns True (the sizes grew) the step is traced again and
+    retried, at most three times per step (:func:`jit_growing`); otherwise the error propagates.
     """
     if steps < 1:
         raise ValueError(f"steps must be a positive integer, got {steps}")
@@ -194,7 +220,7 @@ def fit(
     with jax.numpy_dtype_promotion("standard"):
         state = opt.init(params)
 
-    def raw_step(params, state):
+    def step_fn(params, state):
         loss, g = jax.value_and_grad(loss_fn)(params)
         # optax mixes its int32 step count with float decay rates (Adam's bias correction): allow
         # the standard promotion there even when the caller runs with strict dtype promotion
@@ -203,25 +229,8 @@ def fit(
             params = optax.apply_updates(params, updates)
         return params, state, loss
 
-    step = eqx.filter_jit(raw_step)
-
+    step = jit_growing(step_fn, None if on_overflow is None else lambda p, s: on_overflow(p))
     result = FitResult(params=params)
-
-    def guarded(i, params, state):
-        nonlocal step
-        for attempt in range(4):
-            try:
-                new = step(params, state)
-                jax.block_until_ready(new)
-                return new
-            except eqx.EquinoxRuntimeError as err:
-                if on_overflow is None or attempt == 3 or "overflowed" not in str(err):
-                    raise
-                if not on_overflow(params):
-                    raise
-                step = eqx.filter_jit(lambda p, s: raw_step(p, s))  # a fresh trace, grown sizes
-                result.retraced.append(i)
-        raise AssertionError("unreachable")
 
     it = range(steps)
     if progress:
@@ -231,9 +240,11 @@ def fit(
     for i in it:
         if keep_history:
             result.history.append([np.asarray(p).tolist() for p in params])
-        t0 = time.perf_counter()
-        params, state, loss = guarded(i, params, state)
+        t0, retraces = time.perf_counter(), step.retraces
+        params, state, loss = step(params, state)
         loss = float(loss)
+        if step.retraces > retraces:
+            result.retraced.append(i)
         dt = time.perf_counter() - t0
         if i == 0:
             result.first_step_s = dt

@@ -263,7 +263,7 @@ def _sampler_vertices(occ: MeshOccluder, t, m) -> Float[Array, "W 3"]:
     does not enter them at all, and the values are bitwise those of the world vertices. The
     sphere's centre gets its derivative back in :func:`_bsv_sphere` and :func:`_with_center_motion`
     (BENCHMARKS.md, "Every parameter's frame gradient, and moving an occluder": the position's
-    frame gradient 3–7× cheaper)."""
+    frame gradient 2.5–7× cheaper)."""
     c = jax.lax.stop_gradient(occ.center)
     x = occ.unit_vertices if occ.deform is None else occ.deform(occ.unit_vertices, t)
     v = c + occ.radius * x  # occ.vertices(t), bitwise
