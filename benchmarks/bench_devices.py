@@ -35,6 +35,7 @@ def _scene(path: str):
     from jshadow.config import build_scene, config_from_dict
 
     d = tomllib.loads((ROOT / path).read_text())
+    d.setdefault("method", {}).update(light_visibility="sh", environment_lights=0)  # the n-band light path
     return build_scene(config_from_dict(d, source=path, root=(ROOT / path).parent))
 
 

@@ -36,6 +36,7 @@ from jshadow.scene import render_at
 
 path, runs = sys.argv[1], int(sys.argv[2])
 d = tomllib.loads(pathlib.Path(path).read_text())
+d.setdefault("method", {}).update(light_visibility="sh", environment_lights=0)  # the n-band light path
 scene = build_scene(config_from_dict(d, source=path, root=pathlib.Path(path).resolve().parent))
 occ = scene.occluders[0]
 t = frame_time(scene.n_frames // 2, scene.n_frames)

@@ -21,6 +21,7 @@ after. float32, whatever device JAX picks.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import pathlib
 import platform
@@ -59,6 +60,10 @@ STAGES = (
 def programs(config: pathlib.Path, gradient: str = "scanline"):
     """The mesh at frame 0, the stage names and one jitted function per stage prefix."""
     scene = build_scene(load_config(config))
+    # the n-band light path, as a fit's default (light_visibility = "auto" keeps it for [fit] configs)
+    scene = dataclasses.replace(
+        scene, method=dataclasses.replace(scene.method, light_visibility="sh", environment_lights=0)
+    )
     occ = next((o for o in scene.occluders if isinstance(o, MeshOccluder)), None)
     if occ is None:
         raise SystemExit(f"{config} has no mesh occluder")

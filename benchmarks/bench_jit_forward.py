@@ -44,6 +44,8 @@ def _first_and_warm(fn, x, runs):
 
 def one(config: str, runs: int, grad: bool) -> dict:
     """Time one config in this process."""
+    import dataclasses
+
     import jax
     import jax.numpy as jnp
 
@@ -51,6 +53,10 @@ def one(config: str, runs: int, grad: bool) -> dict:
     from jshadow.scene import render_at
 
     scene = build_scene(load_config(ROOT / config))
+    # the n-band light path (light_visibility = "auto" would take the occlusion images here)
+    scene = dataclasses.replace(
+        scene, method=dataclasses.replace(scene.method, light_visibility="sh", environment_lights=0)
+    )
 
     def frame(t):
         return render_at(scene, t).irradiance

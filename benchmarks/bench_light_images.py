@@ -43,11 +43,14 @@ CONFIGS = [
 
 
 def _methods(base) -> dict:
-    """The settings timed on a config: the default, the images for its sphere lights (if any), the
+    """The settings timed on a config: the default (``light_visibility = "auto"``: the images where
+    they apply), every light through the n-band path, the images for its sphere lights (if any), the
     images with environment lights (lat-long maps only; also at the finer grid and images that
     ``experiments/light_field.py`` measures), and the paper's method."""
     m = base.method
-    out = {"default": m}
+    out = {"default": m}  # light_visibility = "auto": the images where they apply
+    m = dataclasses.replace(m, light_visibility="sh", environment_lights=0)
+    out["n-band"] = m  # every light through the n-band path (the default until "auto")
     if base.lights:
         out["images"] = dataclasses.replace(m, light_visibility="images")
         out["images, coverage"] = dataclasses.replace(m, light_visibility="images", light_images="coverage")

@@ -2,7 +2,11 @@
 
 Usage::
 
-    python benchmarks/bench_render.py [--frames 12] [--json out.json] [--methods default paper paper-shell1.5]
+    python benchmarks/bench_render.py [--frames 12] [--json out.json]
+        [--methods default n-band paper paper-shell1.5]
+
+(The figures recorded before 2026-12-06's ``light_visibility = "auto"`` were of the n-band light
+path: ``--methods n-band`` reproduces them; the receiver sweep and throughput keep it.)
 
 Rows:
 * every shipped config (configs/*.toml, fit configs excluded): warm medians of the renderer's
@@ -46,7 +50,12 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 
 # --methods: [method] keys put over each config's own (the configs leave these to the defaults)
 METHODS = {
-    "default": {},  # shell 1.5, sphere model, n + 1 visibility bands, ratio shading
+    # shell 1.5, sphere model, n + 1 visibility bands, ratio shading; sphere lights and a lat-long
+    # map's lamps through the occlusion images where they apply (light_visibility = "auto")
+    "default": {},
+    # the same with every light through the n-band path (the default until 2026-12-06: the
+    # figures of "Latest figures" in BENCHMARKS.md, and the receiver sweep and throughput below)
+    "n-band": {"light_visibility": "sh", "environment_lights": 0},
     "paper": {"preset": "paper"},  # the paper's method (shell r: brute-force BSV)
     "paper-shell1.5": {"preset": "paper", "shell": 1.5},  # the paper's model on the 1.5 r shell
 }
@@ -111,6 +120,7 @@ def receiver_sweep(config, frames, resolutions=(80, 160, 320)):
     for res in resolutions:
         d = tomllib.loads(config.read_text())
         d["receiver"]["resolution"] = [res, res]
+        d.setdefault("method", {}).update(METHODS["n-band"])
         scene = build_scene(config_from_dict(d, source=str(config), root=config.parent))
         rend = Renderer(scene)
         out, _ = rend.frame(0)
@@ -232,7 +242,9 @@ def main():
             + f" fixed {sw['fixed_ms']:.2f} ms per frame",
             flush=True,
         )
-        scene = build_scene(config_from_dict(tomllib.loads(c.read_text()), source=str(c), root=c.parent))
+        d = tomllib.loads(c.read_text())
+        d.setdefault("method", {}).update(METHODS["n-band"])
+        scene = build_scene(config_from_dict(d, source=str(c), root=c.parent))
         out["throughput"] = throughput(scene, 2 * args.frames + 8)
         print(
             "bunny_animated throughput (render_frames): "

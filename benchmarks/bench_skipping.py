@@ -62,7 +62,10 @@ def _frame_fns(scene) -> dict:
 def bench(path: str, changes: dict, runs: int) -> dict:
     base = build_scene(load_config(path))
     scene = dataclasses.replace(
-        base, method=dataclasses.replace(base.method, light_visibility="images", **changes)
+        base,
+        method=dataclasses.replace(
+            base.method, light_visibility="images", **{"environment_lights": 0, **changes}
+        ),
     )
     t0 = time.perf_counter()
     fns = _frame_fns(scene)

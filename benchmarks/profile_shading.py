@@ -90,6 +90,7 @@ def main(argv=None) -> int:
     for res in args.resolution:
         d = tomllib.loads(args.config.read_text())
         d["receiver"]["resolution"] = [res, res]
+        d.setdefault("method", {}).update(light_visibility="sh", environment_lights=0)  # the n-band path
         scene = build_scene(config_from_dict(d, source=str(args.config), root=args.config.parent))
         rend = Renderer(scene)
         out, _ = rend.frame(0)

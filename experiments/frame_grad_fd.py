@@ -41,6 +41,8 @@ DEFAULT = ["configs/egg_breathing.toml", "configs/bunny_animated.toml"]
 
 def _scene(path: str, gradient: str, directions: int | None = None):
     d = tomllib.loads((ROOT / path).read_text())
+    # the n-band light path, as a fit's default (light_visibility = "auto" keeps it for [fit] configs)
+    d.setdefault("method", {}).update(light_visibility="sh", environment_lights=0)
     if gradient == "coverage":  # the BSV projected from coverage images, JAX's own derivative
         d.setdefault("method", {})["bsv_images"] = "coverage"
     else:

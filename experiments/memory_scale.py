@@ -56,7 +56,7 @@ def _config(side: int) -> dict:
             }
         )
     return {
-        "method": {"shell": 1.5},
+        "method": {"shell": 1.5, "light_visibility": "sh"},  # the n-band light path, as recorded
         "environment": {"type": "constant", "radiance": [0.5, 0.55, 0.6]},
         "occluder": occluders,
         "light": [

@@ -174,6 +174,10 @@ def cmd_render(args) -> int:
         "bsv_computations": renderer.bsv_computations,
         "self_visibility_computations": renderer.self_visibility_computations,
         "light_image_computations": renderer.image_computations,
+        "light_fraction_computations": renderer.fraction_computations,
+        # what [method] light_visibility / environment_lights = "auto" took (jshadow.config.build_scene)
+        "light_visibility": scene.method.light_visibility,
+        "environment_lights": scene.method.environment_lights,
         "readout_frames": renderer.readout_frames,
         "wall_s_including_pictures": wall,
         "per_frame": frames,

@@ -34,6 +34,7 @@ __all__ = [
     "Receivers",
     "Scene",
     "frame_time",
+    "shape_is_static",
     "latlong_to_dir",
     "dir_to_latlong",
     "sky_radiance",
@@ -307,6 +308,20 @@ class MeshOccluder(eqx.Module):
 
 
 _REST_SHAPES: dict = {}  # _faces_key(faces) -> the last concrete MeshOccluder constructed with them
+
+
+def shape_is_static(occ) -> bool:
+    """True if the occluder's shape is the same at every animation time (its BSV can be reused)."""
+    if not isinstance(occ, MeshOccluder) or occ.deform is None:
+        return True
+    leaves = [
+        np.asarray(getattr(occ.deform, name))
+        for name in ("amount_start", "amount_end")
+        if hasattr(occ.deform, name)
+    ]
+    if len(leaves) == 2 and not getattr(occ.deform, "periodic", False):
+        return bool(np.array_equal(leaves[0], leaves[1]))
+    return False
 
 
 def _faces_key(faces) -> tuple:

@@ -46,7 +46,7 @@ import numpy as np
 
 from . import _parallel
 from ._numerics import eps
-from .entities import MeshOccluder, Receivers, Scene, frame_time, receivers_at_time
+from .entities import MeshOccluder, Receivers, Scene, frame_time, receivers_at_time, shape_is_static
 from .readout import prepare_readout, readout_unsupported, shade_readout
 from .scene import (
     RenderResult,
@@ -75,20 +75,6 @@ __all__ = ["Renderer", "shape_is_static", "render_frames", "DEFAULT_CHUNK"]
 DEFAULT_CHUNK = 2**17  # receivers per piece: 131072 (1.6 GiB peak RSS with 8 occluders, memory_scale.py)
 
 
-def shape_is_static(occ) -> bool:
-    """True if the occluder's shape is the same at every animation time (its BSV can be reused)."""
-    if not isinstance(occ, MeshOccluder) or occ.deform is None:
-        return True
-    leaves = [
-        np.asarray(getattr(occ.deform, name))
-        for name in ("amount_start", "amount_end")
-        if hasattr(occ.deform, name)
-    ]
-    if len(leaves) == 2 and not getattr(occ.deform, "periodic", False):
-        return bool(np.array_equal(leaves[0], leaves[1]))
-    return False
-
-
 @eqx.filter_jit
 def _receivers(scene, t):
     return receivers_at_time(scene, t)
@@ -114,13 +100,17 @@ def _combine_piece(
     images=None,
     own=None,
     env_visibility=None,
+    fractions=None,
 ):
     """Combination of one piece (``images``: the occluders' occlusion images with
     ``light_visibility = "images"``, else None; ``own``: the piece's rows of the ray-cast
     own-vertex visibility; see :func:`jshadow.scene.image_fractions`; ``env_visibility``: see
-    :func:`jshadow.scene.combine`)."""
+    :func:`jshadow.scene.combine`; ``fractions``: the pair :func:`jshadow.scene.image_fractions`
+    returns for these receivers, made beforehand, in place of computing it from ``images``)."""
     vis, dist = list(vis), list(dist)  # (m, ...) arrays or empty lists -> lists of m arrays
-    fractions, env_fraction = image_fractions(scene, images, lighting, points, normals, own)
+    if fractions is None:
+        fractions = image_fractions(scene, images, lighting, points, normals, own)
+    fractions, env_fraction = fractions
     e = combine(
         scene,
         points,
@@ -138,31 +128,53 @@ def _combine_piece(
 
 
 _combine = eqx.filter_jit(_combine_piece)
+_image_fractions = eqx.filter_jit(image_fractions)
 
 
 def _shade_piece(
-    scene, bsvs, points, normals, lighting, analytic_spheres, shared_normal, own=None, images=None
+    scene,
+    bsvs,
+    points,
+    normals,
+    lighting,
+    analytic_spheres,
+    shared_normal,
+    own=None,
+    images=None,
+    fractions=None,
 ):
     """Field evaluation and combination of one piece of receivers, traced together (``own``: the
     piece's rows of the ray-cast own-vertex visibility, see :func:`jshadow.scene.occluder_visibilities`;
-    ``images``: see :func:`_combine_piece`). Where only the product of the visibilities is needed
-    (:func:`jshadow.scene.uses_visibility_chain`), each is multiplied in as soon as it is made
-    (:func:`jshadow.scene.visibility_chain`)."""
-    if uses_visibility_chain(scene, own, images, lighting):
+    ``images``, ``fractions``: see :func:`_combine_piece`). Where only the product of the
+    visibilities is needed (:func:`jshadow.scene.uses_visibility_chain`), each is multiplied in as
+    soon as it is made (:func:`jshadow.scene.visibility_chain`)."""
+    if fractions is None and uses_visibility_chain(scene, own, images, lighting):
         chain = visibility_chain(scene, bsvs, points)
         return _combine_piece(
             scene, points, normals, [], [], lighting, analytic_spheres, shared_normal, images, own, chain
         )
     vis, dist = occluder_visibilities(scene, bsvs, points, own)
     return _combine_piece(
-        scene, points, normals, vis, dist, lighting, analytic_spheres, shared_normal, images, own
+        scene,
+        points,
+        normals,
+        vis,
+        dist,
+        lighting,
+        analytic_spheres,
+        shared_normal,
+        images,
+        own,
+        fractions=fractions,
     )
 
 
 _shade = eqx.filter_jit(_shade_piece)
 
 
-def _place_and_shade_frame(scene, bsvs, t, lighting, analytic_spheres, shared_normal, own=None, images=None):
+def _place_and_shade_frame(
+    scene, bsvs, t, lighting, analytic_spheres, shared_normal, own=None, images=None, fractions=None
+):
     """A whole frame's shading: its receivers (:func:`receivers_at_time`), then
     :func:`_shade_piece` on all of them (traced on the scene without its receiver arrays, as the
     pieces of the split path are, so that both compile the same field and combination).
@@ -174,7 +186,7 @@ def _place_and_shade_frame(scene, bsvs, t, lighting, analytic_spheres, shared_no
     points, normals = receivers_at_time(scene, t)
     light = _without_receivers(scene)
     e, rad = _shade_piece(
-        light, bsvs, points, normals, lighting, analytic_spheres, shared_normal, own, images
+        light, bsvs, points, normals, lighting, analytic_spheres, shared_normal, own, images, fractions
     )
     if points is scene.receivers.points and normals is scene.receivers.normals:
         return None, None, e, rad
@@ -251,16 +263,17 @@ _FLAT_SHADERS: dict = {}
 
 def _flat_shader(scene: Scene, lighting, analytic_spheres: bool, shared_normal: int, readout: bool = False):
     """:func:`_place_and_shade` for one scene as ``(call, dynamic)``: ``call(dynamic, bsvs, t, own,
-    images, extra)`` is a plain ``jax.jit`` function of the scene's and lighting's arrays (``dynamic``, a
-    list flattened once here) and of the frame's BSVs and time; with ``readout``, it is
+    images, extra, fractions)`` is a plain ``jax.jit`` function of the scene's and lighting's arrays
+    (``dynamic``, a list flattened once here) and of the frame's BSVs and time; with ``readout``, it is
     :func:`_readout_frame` instead, and ``extra`` is its ``(readout, table)`` (None otherwise).
     ``eqx.filter_jit`` partitions,
     flattens and hashes the whole scene on every call: without that the six shipped configs shade in
     0.86–0.91× the time (the airplane 2.69 → 2.32 ms, BENCHMARKS.md, "Rendering"). Same trace, same
     numbers. Scenes with the same structure and static parts share one compiled function (a renderer
     per thread, or per test, compiles once); ``own`` is the frame's ray-cast own-vertex visibility or
-    None, ``images`` the occluders' occlusion images or None. Returns None if the static parts cannot
-    be hashed (the caller then uses :func:`_place_and_shade`)."""
+    None, ``images`` the occluders' occlusion images or None, ``fractions`` the receivers' visible
+    fractions made from them beforehand (:meth:`Renderer._fractions`) or None. Returns None if the
+    static parts cannot be hashed (the caller then uses :func:`_place_and_shade`)."""
     leaves, tree = jax.tree_util.tree_flatten((scene, lighting))
     mask = tuple(eqx.is_array(x) for x in leaves)
     static = tuple(None if m else x for x, m in zip(leaves, mask, strict=True))
@@ -272,13 +285,15 @@ def _flat_shader(scene: Scene, lighting, analytic_spheres: bool, shared_normal: 
         return None
     if call is None:
 
-        def run(dyn, bsvs, t, own, images, extra):
+        def run(dyn, bsvs, t, own, images, extra, fractions):
             it = iter(dyn)
             full = [next(it) if m else x for x, m in zip(static, mask, strict=True)]
             scn, light = jax.tree_util.tree_unflatten(tree, full)
             if readout:
                 return _readout_frame(scn, bsvs, t, light, analytic_spheres, *extra)
-            return _place_and_shade_frame(scn, bsvs, t, light, analytic_spheres, shared_normal, own, images)
+            return _place_and_shade_frame(
+                scn, bsvs, t, light, analytic_spheres, shared_normal, own, images, fractions
+            )
 
         if len(_FLAT_SHADERS) >= 32:  # scenes are few per process; bound the cache anyway
             _FLAT_SHADERS.clear()
@@ -369,6 +384,10 @@ class Renderer:
         self._static_images: dict[int, object] = {}
         self._fresh_images: dict[int, object] = {}  # this frame's, made with its BSV (one edge-scan)
         self.image_computations = 0
+        # ... and, when every occluder keeps its shape (so the receivers, the lights and the images
+        # are the same at every frame), the receivers' visible fractions made from them, once
+        self._static_fractions = None
+        self.fraction_computations = 0
         # static_readout: None until decided, then False or (Readout, points, normals, centre)
         self.static_readout = static_readout
         self._readout = None
@@ -490,10 +509,30 @@ class Renderer:
             out.append(img)
         return tuple(out)
 
+    def _fractions(self, own, images):
+        """The receivers' visible fractions of the lights through the occlusion images
+        (:func:`jshadow.scene.image_fractions`), made once and kept when no occluder changes its
+        shape: the renderer's lights and placements are fixed, so the receivers (a static mesh's
+        own vertices included), the images and the own-vertex rows are then the same at every
+        frame, and so are the fractions. None otherwise (each frame makes them with its shading)."""
+        if images is None or not all(shape_is_static(o) for o in self.scene.occluders):
+            return None
+        if self._static_fractions is None:
+            points, normals = receivers_at_time(self.scene, 0.0)
+            self._static_fractions = _image_fractions(
+                self._light, images, self._lighting, points, normals, own
+            )
+            self.fraction_computations += 1
+        return self._static_fractions
+
     def _shade_once(self, bsvs, t, own=None, images=None, readout=None):
         """One call placing every receiver of the frame at time ``t`` (an array) and shading them;
         with ``readout`` (a prepared :class:`jshadow.readout.Readout`), the fixed ones read out
-        (:func:`_readout_frame`)."""
+        (:func:`_readout_frame`). The visible fractions of a scene whose occluders keep their shape
+        are made once (:meth:`_fractions`) and given to the shading in place of the images."""
+        fractions = None if readout is not None else self._fractions(own, images)
+        if fractions is not None:
+            images = None
         analytic = self.sphere_path == "analytic"
         mode = readout is not None
         if mode not in self._flat:  # () when the scene cannot be flattened into a hashable key
@@ -503,12 +542,12 @@ class Renderer:
         extra = None if readout is None else (readout, occlusion_table(self.scene))
         if self._flat[mode]:
             call, dynamic = self._flat[mode]
-            out = call(dynamic, bsvs, t, own, images, extra)
+            out = call(dynamic, bsvs, t, own, images, extra, fractions)
         elif readout is not None:
             out = _readout_and_shade(self.scene, bsvs, t, self._lighting, analytic, *extra)
         else:
             out = _place_and_shade(
-                self.scene, bsvs, t, self._lighting, analytic, self._shared_normal, own, images
+                self.scene, bsvs, t, self._lighting, analytic, self._shared_normal, own, images, fractions
             )
         return _with_receivers(self.scene, out)
 

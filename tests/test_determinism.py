@@ -106,8 +106,12 @@ def _check_flat_call(rend, config_file, res):
     equal scene reuses the compiled function; an unhashable static leaf falls back to the latter."""
     scene = rend.scene
     t = jnp.asarray(frame_time(1, scene.n_frames), scene.receivers.points.dtype)
+    bsvs = rend._bsvs(t)
+    images = rend._images(t)  # the sphere light is shadowed through the images (light_visibility "auto")
+    assert images is not None
     ref = runner._with_receivers(
-        scene, runner._place_and_shade(scene, rend._bsvs(t), t, rend._lighting, True, rend._shared_normal)
+        scene,
+        runner._place_and_shade(scene, bsvs, t, rend._lighting, True, rend._shared_normal, None, images),
     )
     _assert_identical(_arrays(res, KEYS), dict(zip(KEYS, (np.asarray(x) for x in ref), strict=True)), KEYS)
     again = Renderer(jshadow.build_scene(jshadow.load_config(config_file)))
@@ -133,11 +137,13 @@ def test_one_call_shading_equals_the_split_stages(config_file):
         _assert_identical(a, b, ("points", "normals"))
         for k in ("irradiance", "radiance"):
             np.testing.assert_allclose(a[k], b[k], rtol=0, atol=tol * np.abs(b[k]).max())
-        assert set(t_one) == {"bsv_ms", "shading_ms", "total_ms"}
-        assert set(t_split) == {"bsv_ms", "shading_ms", "field_ms", "combine_ms", "total_ms"}
+        stages = {"bsv_ms", "light_images_ms", "shading_ms", "total_ms"}
+        assert set(t_one) == stages
+        assert set(t_split) == stages | {"field_ms", "combine_ms"}
         assert t_split["shading_ms"] == pytest.approx(t_split["field_ms"] + t_split["combine_ms"])
         for t in (t_one, t_split):
-            assert t["total_ms"] == pytest.approx(t["bsv_ms"] + t["shading_ms"]) and t["shading_ms"] > 0
+            stages = t["bsv_ms"] + t["light_images_ms"] + t["shading_ms"]
+            assert t["total_ms"] == pytest.approx(stages) and t["shading_ms"] > 0
     with pytest.raises(TypeError, match="split_stages"):
         Renderer(scene, split_stages="yes")
 

@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 from test_scene import SMALL, f32, icosphere_occluder, plane
 
-from jshadow.config import ConfigError, config_from_dict
+from jshadow.config import ConfigError, build_scene, config_from_dict
 from jshadow.entities import Environment, Method, Scene, latlong_to_dir
 from jshadow.envlights import median_cut, split_environment
 from jshadow.geometry import Twist
@@ -250,7 +250,9 @@ def test_config_keys_are_read_and_checked():
     ).method.to_method()
     assert m.environment_lights == 16 and m.environment_threshold == 2.5
     with pytest.raises(ConfigError, match="light_visibility = 'images'"):
-        config_from_dict({**base, "method": {"environment_lights": 8}})
+        config_from_dict({**base, "method": {"light_visibility": "sh", "environment_lights": 8}})
+    with pytest.raises(ConfigError, match="environment_lights.*light_visibility = 'auto' does not take"):
+        build_scene(config_from_dict({**base, "method": {"environment_lights": 8}}))  # a constant sky
     with pytest.raises(ConfigError, match="power of two"):
         config_from_dict({**base, "method": {"light_visibility": "images", "environment_lights": 12}})
     with pytest.raises(ConfigError, match="environment_threshold"):

@@ -5,13 +5,14 @@ Claims tested: the stratified cap nodes lie in the cap, batch, and integrate the
 but a few rays near the silhouette, and rays that miss the bounding sphere are free; a mesh sphere
 and a sphere light through the images match the closed-form lens of the analytic sphere path within
 1.5 % relative RMSE, where the n-band path is off by more than 3 %; ``render`` and the Renderer's
-one-call, split and chunked paths agree, images are made once for a rigid shape and every frame
-for a deforming one; derivatives with respect to radiance, lights and meshes work and a sphere
-occluder's refuses, and the lookup's own gradient is finite at its singular points; jit with a
-traced time equals eager; config keys are read and checked; ``jshadow render`` reports the
-images' time and count, ``jshadow fit`` of a light position runs and of a sphere occluder's
-centre says in one line that its ray test has no derivative; sphere occluders alone keep the
-exact lens.
+one-call, split and chunked paths agree, images (and the visible fractions made from them) are
+made once for a rigid shape and every frame for a deforming one; derivatives with respect to
+radiance, lights and meshes work and a sphere occluder's refuses, and the lookup's own gradient is
+finite at its singular points; jit with a traced time equals eager; config keys are read and
+checked, and ``light_visibility = "auto"`` (the config default) takes the images exactly where they
+apply; ``jshadow render`` reports the images' time and count, ``jshadow fit`` of a light position
+runs and of a sphere occluder's centre says in one line that its ray test has no derivative;
+sphere occluders alone keep the exact lens.
 """
 
 import dataclasses
@@ -27,7 +28,7 @@ from test_scene import SMALL, f32, icosphere_occluder, plane
 
 from jshadow.config import ConfigError, config_from_dict
 from jshadow.entities import Environment, Method, Scene, SphereLight, SphereOccluder
-from jshadow.geometry import Twist
+from jshadow.geometry import MeshWarning, Twist
 from jshadow.runner import Renderer
 from jshadow.sampling import stratified_sphere_cone
 from jshadow.scene import render, render_at
@@ -124,11 +125,13 @@ def test_paths_agree_and_images_are_reused():
     ref = np.asarray(render(scene, 1).irradiance)
     one = Renderer(scene)
     a, times = one.frame(1)
-    one.frame(2)
+    c, _ = one.frame(2)
+    # a rigid shape: its images, and the receivers' visible fractions made from them, once
     assert one.image_computations == 1 and "light_images_ms" in times
+    assert one.fraction_computations == 1
     b, _ = Renderer(scene, split_stages=True, chunk=20).frame(1)
     scale = float(np.abs(ref).max())
-    for x in (a, b):
+    for x in (a, b, c):
         np.testing.assert_allclose(np.asarray(x.irradiance), ref, atol=1e-5 * scale)
     twist = _light_scene(
         icosphere_occluder((0, 1.1, 0), 0.6, Twist(jnp.float32(0.0), jnp.float32(1.0), 1)),
@@ -140,6 +143,7 @@ def test_paths_agree_and_images_are_reused():
     for f in range(3):
         got, times = r.frame(f)
     assert r.image_computations == 3 and r.bsv_computations == 3
+    assert r.fraction_computations == 0  # made with each frame's shading
     # a deforming mesh's images come from its BSV's edge-scan pass (bsv_with_occlusion_images):
     # the same numbers as computing them apart, as render() does
     want = np.asarray(render(twist, 2).irradiance)
@@ -206,6 +210,60 @@ def test_config_keys_are_read_and_checked():
     assert math.isclose(Method().light_cap[0] * Method().light_cap[1], 32)
 
 
+def test_light_visibility_auto_takes_the_images_where_they_apply(tmp_path):
+    """``light_visibility = "auto"`` and ``environment_lights = "auto"`` (the config defaults):
+    the images for a sphere light, or a lat-long map over closed meshes that keep their shape (32
+    distant lights for the map); the n-band path with a fit, the paper's preset or shell, the
+    brute-force BSV, an open mesh, sphere occluders only, or nothing sharp to shadow; explicit
+    choices are kept."""
+    from pathlib import Path
+
+    from jshadow.config import build_scene
+
+    hdr = str(Path(__file__).resolve().parents[1] / "assets" / "envmaps" / "studio_small_03_512x256.hdr")
+    (tmp_path / "open.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 2\nf 1 3 2\nf 1 2 4\nf 1 4 3\n")
+    egg = {"type": "mesh", "shape": "egg", "subdivisions": 1, "center": [0, 1, 0], "radius": 0.5}
+    light = [{"type": "sphere", "center": [0.5, 3, 0.3], "radius": 0.3, "radiance": [9, 9, 9]}]
+    base = {
+        "occluder": [egg],
+        "light": light,
+        "environment": {"type": "constant", "radiance": [0.2, 0.2, 0.2]},
+        "receiver": {"type": "plane", "center": [0, 0, 0], "size": [2, 2], "resolution": [2, 2]},
+    }
+    studio = {"type": "hdr", "file": hdr, "radiance": [1, 1, 1]}
+
+    def chosen(d):
+        m = build_scene(config_from_dict(d, root=tmp_path)).method
+        return m.light_visibility, m.environment_lights
+
+    assert chosen(base) == ("images", 0)
+    assert chosen({**base, "environment": studio}) == ("images", 32)
+    assert chosen({**base, "light": [], "environment": studio}) == ("images", 32)
+    assert chosen({**base, "light": []}) == ("sh", 0)  # a constant sky: nothing sharp
+    # a deforming mesh: the map's lamps stay on the n-band path (looked up every frame otherwise)
+    bend = [{**egg, "deform": {"type": "bend", "amount": [0.0, 0.5]}}]
+    assert chosen({**base, "occluder": bend, "light": [], "environment": studio}) == ("sh", 0)
+    assert chosen({**base, "occluder": bend, "environment": studio}) == ("images", 0)
+    steady = [{**egg, "deform": {"type": "bend", "amount": [0.5, 0.5]}}]  # the same shape every frame
+    assert chosen({**base, "occluder": steady, "light": [], "environment": studio}) == ("images", 32)
+    fit = {"params": ["light.0.center"], "target_values": [[0.0, 3.0, 0.0]]}
+    assert chosen({**base, "environment": studio, "fit": fit}) == ("sh", 0)
+    assert chosen({**base, "method": {"preset": "paper"}}) == ("sh", 0)
+    assert chosen({**base, "method": {"shell": 1.0}}) == ("sh", 0)
+    assert chosen({**base, "method": {"bsv_method": "brute"}}) == ("sh", 0)
+    assert chosen({**base, "occluder": [{"type": "sphere", "center": [0, 1, 0], "radius": 0.4}]}) == ("sh", 0)
+    opened = {"type": "mesh", "file": "open.obj", "center": [2, 1, 0], "radius": 0.3}
+    with pytest.warns(MeshWarning, match="open"):
+        assert chosen({**base, "occluder": [egg, opened]}) == ("sh", 0)
+    assert chosen({**base, "environment": studio, "method": {"light_visibility": "sh"}}) == ("sh", 0)
+    assert chosen({**base, "environment": studio, "method": {"environment_lights": 8}}) == ("images", 8)
+    assert chosen({**base, "environment": studio, "method": {"environment_lights": 0}}) == ("images", 0)
+    # an explicit "images" keeps what it meant before "auto": no environment lights unless given
+    assert chosen({**base, "environment": studio, "method": {"light_visibility": "images"}}) == ("images", 0)
+    with pytest.raises(ConfigError, match="environment_lights"):
+        config_from_dict({**base, "method": {"environment_lights": "many"}})
+
+
 EGG_LIGHT = (
     '[method]\ndirections = [8, 8]\nbsv_grid = [6, 8]\nlight_visibility = "images"\nlight_cap = [2, 4]\n'
     '[environment]\ntype = "constant"\nradiance = [0.2, 0.2, 0.2]\n'
@@ -223,6 +281,8 @@ def test_cli_render_reports_the_images_and_fit_refuses_a_sphere_occluder(tmp_pat
     assert main(["render", str(cfg), "--out", str(tmp_path / "r")]) == 0
     t = json.loads((tmp_path / "r" / "timings.json").read_text())
     assert t["light_image_computations"] == 1 and t["bsv_computations"] == 1  # a rigid egg: once
+    assert t["light_fraction_computations"] == 1
+    assert (t["light_visibility"], t["environment_lights"]) == ("images", 0)
     assert all("light_images_ms" in f for f in t["per_frame"])
     assert "light images" in capsys.readouterr().out
     fit = tmp_path / "fit.toml"

@@ -17,7 +17,15 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from ..entities import Environment, MeshOccluder, Receivers, Scene, SphereLight, SphereOccluder
+from ..entities import (
+    Environment,
+    MeshOccluder,
+    Receivers,
+    Scene,
+    SphereLight,
+    SphereOccluder,
+    shape_is_static,
+)
 from ._errors import ConfigError
 from ._schema import Config, OccluderConfig
 
@@ -198,6 +206,79 @@ def _bsv_images(config: Config, occluders: tuple) -> str:
     return "coverage" if closed else "samples"
 
 
+AUTO_ENVIRONMENT_LIGHTS = 32  # what environment_lights = "auto" takes for a lat-long map
+
+
+def auto_light_path(occluders, has_lights: bool, hdr: bool, shell: float, bsv_method: str) -> tuple[str, int]:
+    """The light path ``light_visibility = "auto"`` takes for a scene's content, as
+    ``(light_visibility, environment_lights)``. Where the occlusion images apply (shell > 1 and
+    ``bsv_method`` not "brute", at least one mesh occluder and every mesh closed):
+
+    * a lat-long map (``hdr``) over meshes that keep their shape
+      (:func:`jshadow.entities.shape_is_static`) has its bright part split off as
+      K = :data:`AUTO_ENVIRONMENT_LIGHTS` distant lights, shadowed through the images (their
+      visible fractions are then made once, :class:`jshadow.Renderer`); over a deforming mesh the
+      map stays on the n-band path (K = 0: 32 directions looked up every frame add 11.7–22.7 ms
+      to the animated bunny's 5.0–6.4 ms frame in two runs of ``bench_light_images.py``,
+      BENCHMARKS.md "Coverage images", "Skipping the receivers that cannot be shadowed");
+    * sphere lights (``has_lights``) are shadowed through the images;
+
+    ``("images", K)`` if either applies, else ``("sh", 0)``, the n-band path. (For a config,
+    :func:`build_scene` asks this only for the default preset without ``[fit]``.)
+
+    Why: the n-band path cannot shadow small bright sources within the accuracy targets (exact
+    4-band visibility at every receiver still leaves 2.5–19 % relative RMSE on the shipped
+    sphere-light and map scenes, BENCHMARKS.md "The floor of any extrapolation model"); through
+    the images the sphere-light scenes reach 0.7–1.0 % (BENCHMARKS.md "The default against the
+    paper"), at a deforming frame's cost of 1–3× the n-band path's, far below the paper's."""
+    from ..geometry import mesh_is_closed_manifold
+
+    meshes = [o for o in occluders if isinstance(o, MeshOccluder)]
+    applies = (
+        shell > 1.0
+        and bsv_method != "brute"
+        and bool(meshes)
+        and all(mesh_is_closed_manifold(np.asarray(o.faces)) for o in meshes)  # faces are concrete
+    )
+    k = AUTO_ENVIRONMENT_LIGHTS if hdr and all(shape_is_static(o) for o in meshes) else 0
+    if applies and (has_lights or k):
+        return "images", k
+    return "sh", 0
+
+
+def _light_path(config: Config, occluders: tuple, has_lights: bool) -> tuple[str, int]:
+    """What ``[method] light_visibility = "auto"`` and ``environment_lights = "auto"`` (the
+    defaults) mean for this config, as ``(light_visibility, environment_lights)``:
+    :func:`auto_light_path` for the default preset without ``[fit]``, else ``("sh", 0)``. An
+    explicit ``light_visibility`` is kept, and with "auto" lights gets K = 0 (what it meant before
+    "auto"); explicit environment lights need the images.
+
+    A fit keeps the n-band path: its gradient costs 1.7–12× less than the images' (BENCHMARKS.md
+    "Gradients through the occlusion images"), and the fitted parameters do not need the shadow's
+    sharpness, only a loss that the same method renders for the target and the fit."""
+    m = config.method
+    env = config.environment
+    hdr = env is not None and env.type == "hdr"
+    explicit = m.light_visibility != "auto"
+    if explicit:
+        visibility, auto_k = m.light_visibility, 0
+    elif m.preset == "default" and config.fit is None:
+        visibility, auto_k = auto_light_path(occluders, has_lights, hdr, m.shell, m.bsv_method)
+    else:
+        visibility, auto_k = "sh", 0
+    k = m.environment_lights
+    if k not in (0, "auto") and visibility != "images":
+        raise ConfigError(
+            config.source,
+            "method.environment_lights",
+            f"{k} environment lights are shadowed through the occlusion images, which "
+            "light_visibility = 'auto' does not take for this config (they need the default preset, "
+            "no [fit], shell > 1, the edge-scan, closed meshes and a sphere light or a lat-long map): "
+            "set light_visibility = 'images', or leave environment_lights out",
+        )
+    return visibility, auto_k if k == "auto" else k
+
+
 def build_scene(config: Config) -> Scene:
     """The :class:`jshadow.entities.Scene` that ``config`` describes.
 
@@ -213,6 +294,10 @@ def build_scene(config: Config) -> Scene:
     * ``n_frames`` = ``[animation] frames``; ``self_shadow`` from ``[receiver]``.
     * ``[method] bsv_images = "auto"`` (the default) is "coverage" where ``[fit]`` fits a mesh's
       deformation and the coverage BSV applies, else "samples" (:func:`_bsv_images`).
+    * ``[method] light_visibility = "auto"`` and ``environment_lights = "auto"`` (the defaults)
+      shadow sphere lights and a lat-long map's lamps (32 distant lights) through the occlusion
+      images where they apply and no ``[fit]`` is given, else through the n-band path
+      (:func:`_light_path`).
 
     Traceable and differentiable in every float leaf of ``config`` (``eqx.tree_at`` + ``jax.jvp``).
     Raises :class:`ConfigError` naming the key when a mesh or map cannot be read.
@@ -245,7 +330,9 @@ def build_scene(config: Config) -> Scene:
         else:
             environment = Environment(radiance=radiance, kind=ec.type)
     return Scene(
-        method=config.method.to_method(_bsv_images(config, occluders)),
+        method=config.method.to_method(
+            _bsv_images(config, occluders), *_light_path(config, occluders, bool(lights))
+        ),
         receivers=receivers,
         occluders=occluders,
         lights=lights,

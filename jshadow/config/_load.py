@@ -230,11 +230,15 @@ def _method(t: _Table) -> MethodConfig:
         bsv_gradient=t.string("bsv_gradient", "auto", choices=BSV_GRADIENTS),
         self_visibility=t.string("self_visibility", "field", choices=SELF_VISIBILITIES),
         self_visibility_grid=t.integers("self_visibility_grid", 2, [12, 48], lo=2),
-        light_visibility=t.string("light_visibility", "sh", choices=LIGHT_VISIBILITIES),
+        light_visibility=t.string("light_visibility", "auto", choices=("auto", *LIGHT_VISIBILITIES)),
         light_cap=t.integers("light_cap", 2, [4, 8], lo=1),
         light_images=t.string("light_images", "samples", choices=LIGHT_IMAGES),
         bsv_images=t.string("bsv_images", "auto", choices=("auto", *BSV_IMAGES)),
-        environment_lights=t.integer("environment_lights", 0, lo=0),
+        environment_lights=(
+            "auto"
+            if t.raw("environment_lights", "auto") == "auto"
+            else t.integer("environment_lights", 0, lo=0)
+        ),
         environment_threshold=t.number("environment_threshold", 4.0, check="positive"),
     )
     try:

@@ -99,16 +99,19 @@ class MethodConfig(eqx.Module):
     ``self_visibility`` "field" | "rays" (an occluder's visibility at its own vertices with
     ``self_shadow``: extrapolated by the field, or cast from each vertex) and
     ``self_visibility_grid`` (θ, φ) ray directions over each vertex's normal hemisphere for "rays",
-    ``light_visibility`` "sh" | "images" (how mesh occluders shadow sphere lights: the field's SH,
-    or rays to the light looked up in the BSV's images), ``light_cap`` (rings, sectors) of those
+    ``light_visibility`` "auto" | "sh" | "images" (how mesh occluders shadow sphere lights: the
+    field's SH, or rays to the light looked up in the BSV's images; "auto", the default: "images"
+    where they apply and a sphere light or a lat-long map is there to shadow, unless ``[fit]`` is
+    given, see :func:`jshadow.config.build_scene`), ``light_cap`` (rings, sectors) of those
     rays per light, ``light_images`` "samples" | "coverage" (the images those rays read),
     ``bsv_images`` "auto" | "samples" | "coverage" (the images a mesh's BSV is projected from; "auto":
     "coverage" where the config's ``[fit]`` fits a mesh's deformation and every mesh allows it, so
     that the fitted loss is continuous in the shape and its gradient exact, else "samples"; see
     :func:`jshadow.config.build_scene`), and
-    ``environment_lights`` K (0, or a power of two: the lat-long map's radiance
+    ``environment_lights`` "auto" | K (0, or a power of two: the lat-long map's radiance
     above ``environment_threshold`` × its mean split off as K distant lights shadowed through the
-    images; :mod:`jshadow.envlights`).
+    images; :mod:`jshadow.envlights`; "auto", the default: 32 where ``light_visibility = "auto"``
+    takes the images and the environment is a lat-long map, else 0).
     """
 
     preset: str = eqx.field(static=True, default="default")
@@ -127,11 +130,11 @@ class MethodConfig(eqx.Module):
     bsv_gradient: str = eqx.field(static=True, default="auto")
     self_visibility: str = eqx.field(static=True, default="field")
     self_visibility_grid: tuple[int, int] = eqx.field(static=True, default=(12, 48))
-    light_visibility: str = eqx.field(static=True, default="sh")
+    light_visibility: str = eqx.field(static=True, default="auto")
     light_cap: tuple[int, int] = eqx.field(static=True, default=(4, 8))
     light_images: str = eqx.field(static=True, default="samples")
     bsv_images: str = eqx.field(static=True, default="auto")
-    environment_lights: int = eqx.field(static=True, default=0)
+    environment_lights: int | str = eqx.field(static=True, default="auto")
     environment_threshold: float = eqx.field(static=True, default=4.0)
 
     def __check_init__(self):
@@ -139,13 +142,27 @@ class MethodConfig(eqx.Module):
             raise ConfigError(
                 None, "method.model", f"expected one of {', '.join(MODELS)}, got {self.model!r}"
             )
-        self.to_method()
+        # explicit environment lights with light_visibility "auto": checked as the images they
+        # need (build_scene says so if "auto" does not take the images for the config)
+        k = self.environment_lights
+        self.to_method(light_visibility="images" if k not in (0, "auto") else None)
 
-    def to_method(self, bsv_images: str | None = None) -> Method:
-        """The :class:`jshadow.entities.Method` these options describe; ``bsv_images`` replaces
-        "auto" (which alone means "samples")."""
+    def to_method(
+        self,
+        bsv_images: str | None = None,
+        light_visibility: str | None = None,
+        environment_lights: int | None = None,
+    ) -> Method:
+        """The :class:`jshadow.entities.Method` these options describe; ``bsv_images``,
+        ``light_visibility`` and ``environment_lights`` replace "auto" (which alone means
+        "samples", "sh" and 0: what :func:`jshadow.config.build_scene` decides for a config is in
+        :func:`jshadow.config._build._bsv_images` and :func:`~jshadow.config._build._light_path`)."""
         if self.bsv_images != "auto":
             bsv_images = self.bsv_images
+        if self.light_visibility != "auto":
+            light_visibility = self.light_visibility
+        if self.environment_lights != "auto":
+            environment_lights = self.environment_lights
         try:
             return Method(
                 sh_bands=self.sh_bands,
@@ -163,11 +180,11 @@ class MethodConfig(eqx.Module):
                 bsv_gradient=self.bsv_gradient,
                 self_visibility=self.self_visibility,
                 self_visibility_grid=tuple(self.self_visibility_grid),
-                light_visibility=self.light_visibility,
+                light_visibility=light_visibility or "sh",
                 light_cap=tuple(self.light_cap),
                 light_images=self.light_images,
                 bsv_images=bsv_images or "samples",
-                environment_lights=self.environment_lights,
+                environment_lights=environment_lights or 0,
                 environment_threshold=float(self.environment_threshold),
             )
         except (ValueError, TypeError) as err:

@@ -1,0 +1,159 @@
+"""The default method against the paper's, on every shipped scene and the untuned ones, in one run.
+
+The default is what a config without ``[method]`` keys renders: shell 1.5 r, the concentric-sphere
+model, n + 1 visibility bands, ratio shading, and ``light_visibility = "auto"``, which shadows
+sphere lights and a lat-long map's lamps (32 distant lights) through the BSV's occlusion images
+wherever they apply (:func:`jshadow.config.auto_light_path`). For each case of
+``experiments/models.py`` and ``experiments/light_field.py`` (the shipped configs at a 32² plane,
+the calibration scenes at 40², and the untuned scenes), three settings are rendered against the
+same cached Monte Carlo reference (``experiments/results/refs/``; ``models.reference`` makes one
+that is missing):
+
+* ``paper``: ``preset = "paper"`` (shell r, the paper's f_k, 4 bands, Zhou et al.'s products);
+* ``n-band``: the default with every light through the n-band path (the default until
+  ``light_visibility = "auto"``);
+* ``default``: the default, with the light path ``auto`` takes for that scene (the same as
+  ``n-band`` where it takes the n-band path: no sphere light and no lat-long map, which is not
+  rendered twice).
+
+Figures per case and setting (``models.errors``): relative RMSE and max error over all receivers
+(divided by the mean reference irradiance), the plane's, the own vertices' where they are receivers,
+the largest excess over the unoccluded reference; time per frame: the median frame of fresh
+renderers (``models.timed``: BSV, images and shading made for the frame, 32² plane).
+
+Usage (repository root, project environment active)::
+
+    python experiments/defaults.py [--cases ...] [--runs 3]
+
+Writes ``experiments/results/defaults.json`` and ``experiments/figures/defaults_maps.png``
+(signed error on the plane, ±10 % of the mean, per case and setting).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import pathlib
+import sys
+import time
+
+import jax
+import matplotlib
+import numpy as np
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
+import light_field  # noqa: E402
+import models  # noqa: E402
+from _common import git_state  # noqa: E402
+
+from jshadow.config import auto_light_path  # noqa: E402
+
+CASES = [
+    # shipped configs
+    "sphere",
+    "bunny_studio",
+    "spot_sunset",
+    "airplane_bend_last",
+    "egg_breathing",
+    "bunny_animated_last",
+    # calibration scenes (DESIGN.md §2)
+    "calib_sphere_bsv",
+    "calib_bunny",
+    # untuned
+    "spot_sky_light",
+    "twisted_airplane_sky",
+    "three_occluders",
+    "bunny_self_sky",
+    "bunny_self_sky_twist",
+    "airplane_studio_twist",
+]
+SETTINGS = ("paper", "n-band", "default")
+
+
+def auto_keys(scene) -> dict:
+    """The ``[method]`` keys ``light_visibility = "auto"`` gives this scene (built with the n-band
+    light path)."""
+    m = scene.method
+    hdr = scene.environment is not None and scene.environment.kind == "hdr"
+    vis, k = auto_light_path(scene.occluders, bool(scene.lights), hdr, m.shell, m.bsv_method)
+    return {"light_visibility": vis, "environment_lights": k}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--cases", nargs="*", default=CASES)
+    ap.add_argument("--runs", type=int, default=3)
+    args = ap.parse_args()
+    results = {"git": git_state(), "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "cases": {}}
+    out = models.RESULTS / "defaults.json"
+    maps = {}
+    t_start = time.perf_counter()
+    cases = light_field._cases()
+    for name in args.cases:
+        build, frame, sphere_path, tuned = cases[name]
+        res = 40 if name.startswith("calib") else 32
+        nband = dict(models.VARIANTS[models.DEFAULT_VARIANT])
+        base = build(nband, res)
+        ref = models.reference(name, build(models.VARIANTS["paper"], res), frame, 1e-3, 32768)
+        n_plane = int(np.prod(base.receivers.grid_shape))
+        auto = auto_keys(base)
+        methods = {"paper": models.VARIANTS["paper"], "n-band": nband}
+        if auto["light_visibility"] != "sh":
+            methods["default"] = dict(nband, **auto)
+        rows, got = {}, {}
+        for label, method in methods.items():
+            approx, first, warm = models.timed(build(method, res), frame, sphere_path, args.runs)
+            err = models.errors(approx, ref, n_plane)
+            err.update(first_ms=first, warm_ms=warm)
+            rows[label], got[label] = err, approx
+            print(
+                f"{name:22s} {label:8s} rmse {err['rel_rmse_pct']:6.2f} %"
+                f"  max {err['max_rel_err_pct']:6.1f} %"
+                f"  excess {err['max_excess_over_unoccluded_pct']:5.2f} %  {warm:7.1f} ms",
+                flush=True,
+            )
+        if "default" not in rows:  # auto takes the n-band path here: the same render
+            rows["default"], got["default"] = rows["n-band"], got["n-band"]
+        results["cases"][name] = {
+            "tuned": tuned,
+            "ref_spp": int(ref["spp"]),
+            "default_light_path": auto,
+            "settings": rows,
+        }
+        maps[name] = (ref["mean"][:n_plane], {s: got[s][:n_plane] for s in SETTINGS})
+        out.write_text(json.dumps(results, indent=1))
+        jax.clear_caches()  # each case compiles its own programs (light_field.py: LLVM out of memory)
+    results["seconds"] = time.perf_counter() - t_start
+    fig, axes = plt.subplots(
+        len(SETTINGS), len(maps), figsize=(2.1 * len(maps), 2.2 * len(SETTINGS)), dpi=100, squeeze=False
+    )
+    im = None
+    for j, (name, (ref, rows)) in enumerate(maps.items()):
+        side = int(round(math.sqrt(ref.shape[0])))
+        for i, label in enumerate(SETTINGS):
+            ax = axes[i, j]
+            ax.set_xticks([])
+            ax.set_yticks([])
+            if i == 0:
+                ax.set_title(name, fontsize=7)
+            if j == 0:
+                ax.set_ylabel(label, fontsize=9)
+            err = ((rows[label] - ref).mean(1) / ref.mean()).reshape(side, side)
+            im = ax.imshow(100 * err, cmap="RdBu_r", vmin=-10, vmax=10, origin="lower")
+            e = results["cases"][name]["settings"][label]["plane_rel_rmse_pct"]
+            ax.set_xlabel(f"plane {e:.2f} %", fontsize=7)
+    fig.colorbar(im, ax=axes, shrink=0.8, label="(render − reference) / mean [%]")
+    path = models.FIGURES / "defaults_maps.png"
+    fig.savefig(path, bbox_inches="tight")
+    plt.close(fig)
+    results["figure"] = str(path.relative_to(models.ROOT))
+    out.write_text(json.dumps(results, indent=1))
+    print(f"wrote {out} and {path} in {results['seconds']:.0f} s")
+
+
+if __name__ == "__main__":
+    main()
