@@ -75,12 +75,11 @@ SETTINGS = ("paper", "n-band", "default")
 
 
 def auto_keys(scene) -> dict:
-    """The ``[method]`` keys ``light_visibility = "auto"`` gives this scene (built with the n-band
-    light path)."""
+    """The ``[method]`` keys the "auto" options give this scene (built with the n-band light path):
+    ``light_visibility``, ``environment_lights``, ``self_visibility``."""
     m = scene.method
     hdr = scene.environment is not None and scene.environment.kind == "hdr"
-    vis, k = auto_light_path(scene.occluders, bool(scene.lights), hdr, m.shell, m.bsv_method)
-    return {"light_visibility": vis, "environment_lights": k}
+    return auto_light_path(scene.occluders, bool(scene.lights), hdr, scene.self_shadow, m.shell, m.bsv_method)
 
 
 def main() -> None:

@@ -175,9 +175,11 @@ def cmd_render(args) -> int:
         "self_visibility_computations": renderer.self_visibility_computations,
         "light_image_computations": renderer.image_computations,
         "light_fraction_computations": renderer.fraction_computations,
-        # what [method] light_visibility / environment_lights = "auto" took (jshadow.config.build_scene)
+        # what [method] light_visibility / environment_lights / self_visibility = "auto" took
+        # (jshadow.config.build_scene)
         "light_visibility": scene.method.light_visibility,
         "environment_lights": scene.method.environment_lights,
+        "self_visibility": scene.method.self_visibility,
         "readout_frames": renderer.readout_frames,
         "wall_s_including_pictures": wall,
         "per_frame": frames,

@@ -52,6 +52,7 @@ from .scene import (
     RenderResult,
     assemble_own_rows,
     bsv_input_vertices,
+    casts_own_sh,
     combine,
     image_fractions,
     occluder_bsv,
@@ -374,6 +375,7 @@ class Renderer:
         # method.self_visibility = "rays": the own-vertex rows' owners (constant), the cast per occluder
         # for shapes that do not change, and how many casts ran (tests check the reuse)
         self._owners = jnp.asarray(self_visibility_owners(scene)) if uses_self_rays(scene) else None
+        self._casts_sh = casts_own_sh(scene)  # "rays"; "light_rays" casts toward the lamps only
         self._static_own: dict[int, object] = {}
         self._static_rows = None  # all of them, when no mesh occluder deforms
         self.self_visibility_computations = 0
@@ -465,7 +467,7 @@ class Renderer:
                 v, vl = self._static_own[i]
             else:
                 at = 0.0 if shape_is_static(occ) else t
-                v = occluder_own_visibility(occ, at, self.scene, cache=False)
+                v = occluder_own_visibility(occ, at, self.scene, cache=False) if self._casts_sh else None
                 vl = None
                 if lights is not None:
                     vl = occluder_own_light_visibility(occ, at, self.scene, lights.directions, cache=False)
@@ -476,7 +478,7 @@ class Renderer:
             own_lights.append(vl)
         out = assemble_own_rows(
             self.scene,
-            own,
+            own if self._casts_sh else None,
             None if lights is None else own_lights,
             None if lights is None else lights.directions,
             self._owners,
@@ -620,11 +622,15 @@ class Renderer:
                 o = (
                     own
                     if (s, size) == (0, n)
-                    else tuple(_parallel.pad_rows(x[s : s + size], size) for x in own)
+                    else tuple(None if x is None else _parallel.pad_rows(x[s : s + size], size) for x in own)
                 )
             if self.mesh is not None:
                 p, q = _parallel.shard_rows(p, self.mesh), _parallel.shard_rows(q, self.mesh)
-                o = None if o is None else tuple(_parallel.shard_rows(x, self.mesh) for x in o)
+                o = (
+                    None
+                    if o is None
+                    else tuple(None if x is None else _parallel.shard_rows(x, self.mesh) for x in o)
+                )
             shared = min(max(self._shared_normal - s, 0), size)
             ta = time.perf_counter()
             if self.split_stages:

@@ -98,6 +98,7 @@ __all__ = [
     "uses_visibility_chain",
     "visibility_chain",
     "uses_self_rays",
+    "casts_own_sh",
     "self_visibility_owners",
     "occluder_own_visibility",
     "self_visibility_rows",
@@ -536,20 +537,29 @@ def _scan_grad_slots(occ: MeshOccluder, faces: np.ndarray, m, lazy: bool = False
 
 
 SELF_RAYS_NO_DERIVATIVE = (
-    "method.self_visibility = 'rays' casts binary visibility from the occluders' own vertices, which "
+    "method.self_visibility = 'rays' (or 'light_rays') casts binary visibility from the occluders' own "
+    "vertices, which "
     "has no derivative with respect to those vertices: differentiate with self_visibility = 'field' "
     "(or without self_shadow)"
 )
 
 
 def uses_self_rays(scene: Scene) -> bool:
-    """Whether the scene's own-vertex visibility is cast by rays (``self_shadow`` with
-    ``method.self_visibility = "rays"`` and at least one mesh occluder)."""
+    """Whether rays are cast from the occluders' own vertices (``self_shadow`` and at least one
+    mesh occluder, with ``method.self_visibility = "rays"``, or "light_rays" and
+    :func:`uses_environment_lights`): :func:`own_rows_at_time` is then not None."""
+    m = scene.method.self_visibility
     return (
         scene.self_shadow
-        and scene.method.self_visibility == "rays"
         and any(isinstance(o, MeshOccluder) for o in scene.occluders)
+        and (m == "rays" or (m == "light_rays" and uses_environment_lights(scene)))
     )
+
+
+def casts_own_sh(scene: Scene) -> bool:
+    """Whether the own vertices' visibility SH is cast (``self_visibility = "rays"``) rather than
+    the field's (with "light_rays" only their visibility toward the environment lights is)."""
+    return uses_self_rays(scene) and scene.method.self_visibility == "rays"
 
 
 def self_visibility_owners(scene: Scene) -> np.ndarray:
@@ -648,12 +658,13 @@ def self_visibility_rows(scene: Scene, own: list) -> Float[Array, "N n2"]:
 def own_rows_at_time(scene: Scene, t) -> tuple[Array, ...] | None:
     """``(rows, owners)`` of the scene's ray-cast own-vertex visibility at time t
     (:func:`self_visibility_rows`, :func:`self_visibility_owners`), or None when the scene does
-    not use them (:func:`uses_self_rays`). With :func:`uses_environment_lights` a third item, the
+    not use them (:func:`uses_self_rays`); ``rows`` is None with ``self_visibility = "light_rays"``
+    (the field's visibility is kept). With :func:`uses_environment_lights` a third item, the
     (N, K) own-vertex visibility toward the environment lights (:func:`self_light_rows`)."""
     if not uses_self_rays(scene):
         return None
     meshes = [o for o in scene.occluders if isinstance(o, MeshOccluder)]
-    own = [occluder_own_visibility(o, t, scene) for o in meshes]
+    own = [occluder_own_visibility(o, t, scene) for o in meshes] if casts_own_sh(scene) else None
     if not uses_environment_lights(scene):
         return assemble_own_rows(scene, own)
     d = scene_lighting(scene).env_lights.directions
@@ -669,14 +680,15 @@ def assemble_own_rows(
 ) -> tuple[Array, ...]:
     """The tuple :func:`own_rows_at_time` returns, from each mesh occluder's cast visibility.
 
-    ``own``: per mesh occluder (in scene order) its :func:`occluder_own_visibility`;
+    ``own``: per mesh occluder (in scene order) its :func:`occluder_own_visibility`, or None
+    (``self_visibility = "light_rays"``: the tuple's rows are None);
     ``own_lights`` (with ``light_directions``, the (K, 3) environment-light directions): its
     :func:`occluder_own_light_visibility`, or None without environment lights; ``owners``: the
     precomputed :func:`self_visibility_owners` as an array (computed here when None).
     """
     if owners is None:
         owners = jnp.asarray(self_visibility_owners(scene))
-    out = (self_visibility_rows(scene, own), owners)
+    out = (None if own is None else self_visibility_rows(scene, own), owners)
     if own_lights is None:
         return out
     return (*out, self_light_rows(scene, own_lights, light_directions.shape[0]))
@@ -982,9 +994,10 @@ def environment_visible_fraction(
     line through such a receiver meets the mesh behind it too); :func:`combine` shades their bright
     part through the n-band path instead (in a throwaway trial on the bunny's own vertices under
     the studio map, not kept: 55 % relative RMSE through the lookups, 24 % through the n-band
-    path). With ``self_visibility = "rays"``, ``own`` (from :func:`own_rows_at_time`, or a piece
-    of it) holds the own vertices' exact visibility toward the lights in its third item: it
-    replaces their own occluder's lookup, and they are not ``inside`` for it.
+    path). With ``self_visibility = "rays"`` or "light_rays", ``own`` (from
+    :func:`own_rows_at_time`, or a piece of it) holds the own vertices' exact visibility toward
+    the lights in its third item: it replaces their own occluder's lookup, and they are not
+    ``inside`` for it.
 
     Work skipped: with ``cull`` (the default), the lookups of a fan run only on chunks of receivers
     that hold one from which a direction of the fan may meet a blocker's sphere
@@ -1083,7 +1096,8 @@ def occluder_visibilities(
 
     ``own``: None, or ``(rows, owners)`` — (N, n²) and (N,) int — from :func:`own_rows_at_time`
     (or a piece of them, sliced like ``points``): receiver r's visibility of occluder
-    ``owners[r]`` is ``rows[r]`` instead of the field's (``self_visibility = "rays"``).
+    ``owners[r]`` is ``rows[r]`` instead of the field's (``self_visibility = "rays"``; rows None:
+    the field's throughout).
     """
     n = scene.method.sh_bands
     table = occlusion_table(scene) if any(b is not None for b in bsvs) else None
@@ -1123,7 +1137,7 @@ def occluder_visibilities(
         vs, ds = jax.lax.map(field, stacked)
         for j, i in enumerate(idx):
             vis[i], dist[i] = vs[j], ds[j]
-    if own is not None:
+    if own is not None and own[0] is not None:
         rows, owners = own[0], own[1]
         for i, occ in enumerate(scene.occluders):
             if isinstance(occ, MeshOccluder):

@@ -28,7 +28,14 @@ from jshadow.envlights import median_cut, split_environment
 from jshadow.geometry import Twist
 from jshadow.lights import environment_irradiance_map, environment_sh
 from jshadow.runner import Renderer
-from jshadow.scene import environment_visible_fraction, render, render_at, scene_images, scene_lighting
+from jshadow.scene import (
+    environment_visible_fraction,
+    own_rows_at_time,
+    render,
+    render_at,
+    scene_images,
+    scene_lighting,
+)
 from jshadow.visibility import ray_fan_any_hit
 
 SPLIT = dataclasses.replace(SMALL, light_visibility="images", environment_lights=8)
@@ -173,11 +180,20 @@ def test_own_vertices_fall_back_and_the_plane_does_not():
     assert float(jnp.sqrt(jnp.mean((out.irradiance[n_plane:] - unsplit) ** 2))) < 0.05 * scale
 
 
-def test_own_vertices_with_rays_see_the_lights_exactly():
-    """With ``self_visibility = "rays"`` the own vertices' bright part uses exact rays toward the
-    lights: against the brute-force pixel sum at those vertices it beats the n-band fallback."""
-    rays = _sun_scene(dataclasses.replace(SPLIT, self_visibility="rays"), n=3, self_shadow=True)
+@pytest.mark.parametrize("own", ["rays", "light_rays"])
+def test_own_vertices_with_rays_see_the_lights_exactly(own):
+    """With ``self_visibility = "rays"`` or "light_rays" the own vertices' bright part uses exact
+    rays toward the lights: against the brute-force pixel sum at those vertices it beats the n-band
+    fallback. "light_rays" keeps the field's visibility for the rest (the same own-vertex rows for
+    the lights as "rays", no visibility SH cast), and the Renderer casts a rigid shape once."""
+    rays = _sun_scene(dataclasses.replace(SPLIT, self_visibility=own), n=3, self_shadow=True)
     fallback = dataclasses.replace(rays, method=SPLIT)
+    rows = own_rows_at_time(rays, 0.0)
+    full = own_rows_at_time(
+        dataclasses.replace(rays, method=dataclasses.replace(SPLIT, self_visibility="rays")), 0.0
+    )
+    assert (rows[0] is None) == (own == "light_rays")
+    np.testing.assert_array_equal(np.asarray(rows[2]), np.asarray(full[2]))
     out = render(rays)
     n_plane = rays.receivers.points.shape[0]
     pts, nrm = out.points[n_plane:], out.normals[n_plane:]
@@ -195,6 +211,16 @@ def test_own_vertices_with_rays_see_the_lights_exactly():
     np.testing.assert_allclose(
         np.asarray(got.irradiance), np.asarray(out.irradiance), atol=1e-5 * float(mean)
     )
+    r.frame(0)
+    assert r.self_visibility_computations == 1
+
+    def moved(dy):  # the own vertices move: their binary rays have no derivative to give
+        occ = rays.occluders[0]
+        o = dataclasses.replace(occ, center=occ.center + dy * jnp.asarray([0.0, 1.0, 0.0], jnp.float32))
+        return jnp.sum(render(dataclasses.replace(rays, occluders=(o,))).irradiance)
+
+    with pytest.raises(ValueError, match="light_rays"):
+        jax.grad(moved)(jnp.float32(0.0))
     b, _ = Renderer(rays, split_stages=True, chunk=64).frame(0)
     np.testing.assert_allclose(np.asarray(b.irradiance), np.asarray(out.irradiance), atol=1e-5 * float(mean))
 

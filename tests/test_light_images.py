@@ -232,12 +232,19 @@ def test_light_visibility_auto_takes_the_images_where_they_apply(tmp_path):
     }
     studio = {"type": "hdr", "file": hdr, "radiance": [1, 1, 1]}
 
-    def chosen(d):
+    def chosen(d, own="field"):
         m = build_scene(config_from_dict(d, root=tmp_path)).method
+        assert m.self_visibility == own
         return m.light_visibility, m.environment_lights
 
     assert chosen(base) == ("images", 0)
     assert chosen({**base, "environment": studio}) == ("images", 32)
+    # the own vertices among the receivers: their shadows of the lamps by rays (cast once)
+    own = {**base["receiver"], "self_shadow": True}
+    assert chosen({**base, "environment": studio, "receiver": own}, "light_rays") == ("images", 32)
+    assert chosen({**base, "receiver": own}) == ("images", 0)  # no lamps: the field
+    keep = {"self_visibility": "field"}
+    assert chosen({**base, "environment": studio, "receiver": own, "method": keep}) == ("images", 32)
     assert chosen({**base, "light": [], "environment": studio}) == ("images", 32)
     assert chosen({**base, "light": []}) == ("sh", 0)  # a constant sky: nothing sharp
     # a deforming mesh: the map's lamps stay on the n-band path (looked up every frame otherwise)
@@ -282,7 +289,7 @@ def test_cli_render_reports_the_images_and_fit_refuses_a_sphere_occluder(tmp_pat
     t = json.loads((tmp_path / "r" / "timings.json").read_text())
     assert t["light_image_computations"] == 1 and t["bsv_computations"] == 1  # a rigid egg: once
     assert t["light_fraction_computations"] == 1
-    assert (t["light_visibility"], t["environment_lights"]) == ("images", 0)
+    assert (t["light_visibility"], t["environment_lights"], t["self_visibility"]) == ("images", 0, "field")
     assert all("light_images_ms" in f for f in t["per_frame"])
     assert "light images" in capsys.readouterr().out
     fit = tmp_path / "fit.toml"

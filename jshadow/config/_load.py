@@ -228,7 +228,7 @@ def _method(t: _Table) -> MethodConfig:
         ),
         shading=t.string("shading", "product" if paper else "ratio", choices=SHADINGS),
         bsv_gradient=t.string("bsv_gradient", "auto", choices=BSV_GRADIENTS),
-        self_visibility=t.string("self_visibility", "field", choices=SELF_VISIBILITIES),
+        self_visibility=t.string("self_visibility", "auto", choices=("auto", *SELF_VISIBILITIES)),
         self_visibility_grid=t.integers("self_visibility_grid", 2, [12, 48], lo=2),
         light_visibility=t.string("light_visibility", "auto", choices=("auto", *LIGHT_VISIBILITIES)),
         light_cap=t.integers("light_cap", 2, [4, 8], lo=1),

@@ -78,6 +78,15 @@ def _check_leaf(owner: str, name: str, value, shape: tuple[int, ...] | None, pos
         raise ConfigError(None, key, f"expected positive numbers, got {arr.tolist()}")
 
 
+# what an "auto" option of [method] means where build_scene has not decided it (MethodConfig.to_method)
+_AUTO_FALLBACK = {
+    "bsv_images": "samples",
+    "light_visibility": "sh",
+    "environment_lights": 0,
+    "self_visibility": "field",
+}
+
+
 class MethodConfig(eqx.Module):
     """``[method]``: the static options of :class:`jshadow.entities.Method` (every key optional).
 
@@ -96,8 +105,10 @@ class MethodConfig(eqx.Module):
     M_k (≥ ``sh_bands``; default ``sh_bands`` + 1, or ``sh_bands`` for the paper), ``shading``
     "ratio" | "product" (see :func:`jshadow.scene.combine`), ``bsv_gradient`` "auto" | "raycast" |
     "image" | "scanline" (visibility in the BSV's vertex derivative, see :class:`jshadow.entities.Method`),
-    ``self_visibility`` "field" | "rays" (an occluder's visibility at its own vertices with
-    ``self_shadow``: extrapolated by the field, or cast from each vertex) and
+    ``self_visibility`` "auto" | "field" | "rays" | "light_rays" (an occluder's visibility at its
+    own vertices with ``self_shadow``: extrapolated by the field, cast from each vertex, or the
+    field's with rays toward the environment lights; "auto", the default: "light_rays" where
+    ``environment_lights = "auto"`` takes the map's lamps, else "field") and
     ``self_visibility_grid`` (θ, φ) ray directions over each vertex's normal hemisphere for "rays",
     ``light_visibility`` "auto" | "sh" | "images" (how mesh occluders shadow sphere lights: the
     field's SH, or rays to the light looked up in the BSV's images; "auto", the default: "images"
@@ -128,7 +139,7 @@ class MethodConfig(eqx.Module):
     bsv_bands: int | None = eqx.field(static=True, default=None)
     shading: str = eqx.field(static=True, default="ratio")
     bsv_gradient: str = eqx.field(static=True, default="auto")
-    self_visibility: str = eqx.field(static=True, default="field")
+    self_visibility: str = eqx.field(static=True, default="auto")
     self_visibility_grid: tuple[int, int] = eqx.field(static=True, default=(12, 48))
     light_visibility: str = eqx.field(static=True, default="auto")
     light_cap: tuple[int, int] = eqx.field(static=True, default=(4, 8))
@@ -147,22 +158,17 @@ class MethodConfig(eqx.Module):
         k = self.environment_lights
         self.to_method(light_visibility="images" if k not in (0, "auto") else None)
 
-    def to_method(
-        self,
-        bsv_images: str | None = None,
-        light_visibility: str | None = None,
-        environment_lights: int | None = None,
-    ) -> Method:
-        """The :class:`jshadow.entities.Method` these options describe; ``bsv_images``,
-        ``light_visibility`` and ``environment_lights`` replace "auto" (which alone means
-        "samples", "sh" and 0: what :func:`jshadow.config.build_scene` decides for a config is in
-        :func:`jshadow.config._build._bsv_images` and :func:`~jshadow.config._build._light_path`)."""
-        if self.bsv_images != "auto":
-            bsv_images = self.bsv_images
-        if self.light_visibility != "auto":
-            light_visibility = self.light_visibility
-        if self.environment_lights != "auto":
-            environment_lights = self.environment_lights
+    def to_method(self, **decided) -> Method:
+        """The :class:`jshadow.entities.Method` these options describe. The options that may be
+        "auto" (``bsv_images``, ``light_visibility``, ``environment_lights``, ``self_visibility``)
+        take the value given for them in ``decided`` — what :func:`jshadow.config.build_scene`
+        decides for a config (:func:`jshadow.config._build._bsv_images`,
+        :func:`~jshadow.config._build._light_path`) — or, without one, the library's default
+        ("samples", "sh", 0, "field")."""
+        chosen = {}
+        for name, fallback in _AUTO_FALLBACK.items():
+            value = getattr(self, name)
+            chosen[name] = value if value != "auto" else (decided.get(name) or fallback)
         try:
             return Method(
                 sh_bands=self.sh_bands,
@@ -178,13 +184,13 @@ class MethodConfig(eqx.Module):
                 bsv_bands=self.bsv_bands,
                 shading=self.shading,
                 bsv_gradient=self.bsv_gradient,
-                self_visibility=self.self_visibility,
+                self_visibility=chosen["self_visibility"],
                 self_visibility_grid=tuple(self.self_visibility_grid),
-                light_visibility=light_visibility or "sh",
+                light_visibility=chosen["light_visibility"],
                 light_cap=tuple(self.light_cap),
                 light_images=self.light_images,
-                bsv_images=bsv_images or "samples",
-                environment_lights=environment_lights or 0,
+                bsv_images=chosen["bsv_images"],
+                environment_lights=chosen["environment_lights"],
                 environment_threshold=float(self.environment_threshold),
             )
         except (ValueError, TypeError) as err:
