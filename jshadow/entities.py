@@ -316,14 +316,14 @@ _REST_SHAPES: dict = {}  # _faces_key(faces) -> the last concrete MeshOccluder c
 
 
 def shape_is_static(occ) -> bool:
-    """True if the occluder's shape is the same at every animation time (its BSV can be reused)."""
+    """True if the occluder's shape is the same at every animation time (its BSV can be reused);
+    False for a deformation whose amounts are traced (they may differ)."""
     if not isinstance(occ, MeshOccluder) or occ.deform is None:
         return True
-    leaves = [
-        np.asarray(getattr(occ.deform, name))
-        for name in ("amount_start", "amount_end")
-        if hasattr(occ.deform, name)
-    ]
+    raw = [getattr(occ.deform, name) for name in ("amount_start", "amount_end") if hasattr(occ.deform, name)]
+    if any(isinstance(x, jax.core.Tracer) for x in raw):
+        return False
+    leaves = [np.asarray(x) for x in raw]
     if len(leaves) == 2 and not getattr(occ.deform, "periodic", False):
         return bool(np.array_equal(leaves[0], leaves[1]))
     return False

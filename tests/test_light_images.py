@@ -19,6 +19,7 @@ import dataclasses
 import json
 import math
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -253,6 +254,10 @@ def test_light_visibility_auto_takes_the_images_where_they_apply(tmp_path):
     assert chosen({**base, "occluder": bend, "environment": studio}) == ("images", 0)
     steady = [{**egg, "deform": {"type": "bend", "amount": [0.5, 0.5]}}]  # the same shape every frame
     assert chosen({**base, "occluder": steady, "light": [], "environment": studio}) == ("images", 32)
+    # under jit the amounts are traced: they may differ, so the shape counts as deforming
+    traced = config_from_dict({**base, "occluder": steady, "light": [], "environment": studio}, root=tmp_path)
+    method = eqx.filter_jit(lambda c: build_scene(c).method)(traced)
+    assert (method.light_visibility, method.environment_lights) == ("sh", 0)
     fit = {"params": ["light.0.center"], "target_values": [[0.0, 3.0, 0.0]]}
     assert chosen({**base, "environment": studio, "fit": fit}) == ("sh", 0)
     assert chosen({**base, "method": {"preset": "paper"}}) == ("sh", 0)

@@ -238,8 +238,9 @@ def auto_light_path(
     Why: the n-band path cannot shadow small bright sources within the accuracy targets (exact
     4-band visibility at every receiver still leaves 2.5–19 % relative RMSE on the shipped
     sphere-light and map scenes, BENCHMARKS.md "The floor of any extrapolation model"); through
-    the images the sphere-light scenes reach 0.7–1.0 % (BENCHMARKS.md "The default against the
-    paper"), at a deforming frame's cost of 1–3× the n-band path's, far below the paper's."""
+    the images the sphere-light scenes reach 0.5–1.0 % (BENCHMARKS.md "The default against the
+    paper"), at 2.6–3.0× the n-band path's warm frame on the deforming configs (a fresh frame about
+    the same), 0.05–0.25× the paper's."""
     from ..geometry import mesh_is_closed_manifold
 
     meshes = [o for o in occluders if isinstance(o, MeshOccluder)]
