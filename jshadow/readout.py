@@ -84,6 +84,9 @@ class Readout(eqx.Module):
             vectors of the three channels, then each light's radiance.
         center: the BSV's bounding-sphere centre (3,) that the rows were computed for.
         ratio: (static) ratio shading (else Zhou et al.'s products, as in ``combine``).
+        offset: (N, 3) irradiance added to every frame, or None: the terms of a static scene's
+            lights shadowed through the occlusion images, which do not change from frame to frame
+            (:class:`jshadow.Renderer` sets it; :func:`prepare_readout` leaves it None).
     """
 
     rows: Int[Array, "4 N"]
@@ -97,6 +100,7 @@ class Readout(eqx.Module):
     colours: Float[Array, "C 3"]
     center: Float[Array, "3"]
     ratio: bool = eqx.field(static=True)
+    offset: Float[Array, "N 3"] | None = None
 
 
 def readout_unsupported(scene: Scene, bsvs, own=None, images=None, env_lights=None) -> str | None:
@@ -234,4 +238,6 @@ def _finish(
     """The functionals' values → irradiance and radiance (N, 3), shaded as :func:`jshadow.scene.combine`."""
     q = _shadow_ratio(q, readout.unoccluded, readout.exact) if readout.ratio else q
     e = q.T @ readout.colours  # (N, 3)
+    if readout.offset is not None:
+        e = e + readout.offset
     return e, e * (albedo / math.pi)

@@ -34,6 +34,7 @@ Devices: with ``devices`` the receivers of each piece are sharded over a one-axi
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import threading
 import time
@@ -403,7 +404,11 @@ class Renderer:
             return None
         if self._readout is None:
             scene = self.scene
-            reason = readout_unsupported(scene, bsvs, own, images, self._lighting.env_lights)
+            split = self._image_split(own, images)
+            if split is not None:  # a static scene's image terms: an offset (_prepare_image_offset)
+                reason = readout_unsupported(split[0], bsvs, None, None, None)
+            else:
+                reason = readout_unsupported(scene, bsvs, own, images, self._lighting.env_lights)
             fixed = self._receiver_count
             if reason is None and scene.self_shadow and not shape_is_static(scene.occluders[0]):
                 # a deforming occluder's own vertices move: the general path shades them, in the
@@ -423,13 +428,50 @@ class Renderer:
             points, normals = points[:fixed], normals[:fixed]
             table = occlusion_table(scene)
             shared = shared_normal_count(normals)
-            ro = _prepare_readout(scene, bsvs[0], self._lighting, table, points, normals, shared)
+            if split is None:
+                ro = _prepare_readout(scene, bsvs[0], self._lighting, table, points, normals, shared)
+            else:
+                sh_scene, sh_lighting = split
+                ro = _prepare_readout(sh_scene, bsvs[0], sh_lighting, table, points, normals, shared)
+                ro = self._with_image_offset(ro, split, bsvs, own, images)
             self._readout = (ro, np.asarray(ro.center))
         ro, center = self._readout
         if _centre_moved(bsvs[0].center, center, bsvs[0].shell_radius):  # a check the sampling missed
             self.readout_reason, self._readout = "the bounding sphere's centre moves", False
             return None
         return ro
+
+    def _image_split(self, own, images):
+        """For a scene whose occluders keep their shape and whose lights go through the occlusion
+        images (their visible fractions made once, :meth:`_fractions`): ``(scene, lighting)``
+        without those lights — no sphere lights, no environment lights —, whose frames the readout
+        can take; the image terms are then a constant offset per receiver
+        (:meth:`_with_image_offset`). None otherwise, or when the own vertices' visibility SH is
+        cast (``self_visibility = "rays"``)."""
+        if images is None or not all(shape_is_static(o) for o in self.scene.occluders):
+            return None
+        if own is not None and own[0] is not None:
+            return None
+        sh_scene = dataclasses.replace(self.scene, lights=())
+        sh_lighting = dataclasses.replace(self._lighting, env_lights=None, env_bright_sh=None)
+        return sh_scene, sh_lighting
+
+    def _with_image_offset(self, ro, split, bsvs, own, images):
+        """``ro`` with its offset: the static scene's whole frame less the frame of ``split``'s
+        scene and lighting (the same field, only the SH-lit terms), both by the general path once;
+        every read-out frame then adds it to the SH terms it reads (the same numbers as the general
+        path up to rounding)."""
+        analytic = self.sphere_path == "analytic"
+        t = jnp.asarray(0.0, self.scene.receivers.points.dtype)
+        fractions = self._fractions(own, images)
+        full = _place_and_shade(
+            self.scene, bsvs, t, self._lighting, analytic, self._shared_normal, own, None, fractions
+        )
+        sh_scene, sh_lighting = split
+        sh = _place_and_shade(sh_scene, bsvs, t, sh_lighting, analytic, self._shared_normal)
+        fixed = ro.inv_d.shape[0]
+        offset = (full[2] - sh[2])[:fixed]
+        return eqx.tree_at(lambda r: r.offset, ro, offset, is_leaf=lambda x: x is None)
 
     def _bsvs(self, t):
         out = []

@@ -127,9 +127,11 @@ def test_paths_agree_and_images_are_reused():
     one = Renderer(scene)
     a, times = one.frame(1)
     c, _ = one.frame(2)
-    # a rigid shape: its images, and the receivers' visible fractions made from them, once
+    # a rigid shape: its images, and the receivers' visible fractions made from them, once; the
+    # frames read out of the field's table, the lights' image terms added as a constant offset
     assert one.image_computations == 1 and "light_images_ms" in times
     assert one.fraction_computations == 1
+    assert one.readout_frames == 2 and one.readout_reason is None
     b, _ = Renderer(scene, split_stages=True, chunk=20).frame(1)
     scale = float(np.abs(ref).max())
     for x in (a, b, c):
@@ -145,6 +147,7 @@ def test_paths_agree_and_images_are_reused():
         got, times = r.frame(f)
     assert r.image_computations == 3 and r.bsv_computations == 3
     assert r.fraction_computations == 0  # made with each frame's shading
+    assert r.readout_frames == 0 and "occlusion images" in r.readout_reason
     # a deforming mesh's images come from its BSV's edge-scan pass (bsv_with_occlusion_images):
     # the same numbers as computing them apart, as render() does
     want = np.asarray(render(twist, 2).irradiance)
