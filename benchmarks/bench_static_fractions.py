@@ -1,13 +1,17 @@
-"""Re-shaded frames of static scenes with the visible fractions made once, against made every frame.
+"""Re-shaded frames of static scenes: the visible fractions made once, and read out of the
+field's table with the image terms as an offset, against the fractions made every frame.
 
     python benchmarks/bench_static_fractions.py [--frames 21]
 
 For ``spot_sunset`` and ``bunny_studio`` (static meshes; their default shadows the sphere light and
-the map's lamps through the occlusion images), two :class:`jshadow.Renderer` in one process: the
-default, which makes the receivers' visible fractions once (``Renderer._fractions``), and one whose
-``_fractions`` returns None, so that each frame's shading makes them again (the behaviour before).
-Both render frame 0 twice (compile), then ``--frames`` frames each, alternating; medians of
-``total_ms``, and the largest difference of the two renderers' irradiance over its maximum.
+the map's lamps through the occlusion images), three :class:`jshadow.Renderer` in one process:
+``every``, the general path with each frame's shading making the fractions again (the behaviour
+before; ``static_readout=False`` and ``_fractions`` returning None); ``once``, the general path
+with the fractions made once (``static_readout=False``); ``default``, the renderer's default, which
+also reads the frame out of the field's table and adds the image terms as a constant offset
+(``Readout.offset``). Each renders frame 0 twice (compile, preparation), then ``--frames`` frames
+each, alternating; medians of ``total_ms``, and the largest difference from ``every``'s irradiance
+over its maximum.
 """
 
 from __future__ import annotations
@@ -30,22 +34,31 @@ def main() -> None:
     args = ap.parse_args()
     for cfg in CONFIGS:
         scene = build_scene(load_config(ROOT / cfg))
-        once, every = Renderer(scene), Renderer(scene)
-        every._fractions = lambda own, images: None  # made with each frame's shading
-        a, _ = once.frame(0)
-        b, _ = every.frame(0)
-        once.frame(0)
-        every.frame(0)
-        ea, eb = np.asarray(a.irradiance), np.asarray(b.irradiance)
-        diff = float(np.abs(ea - eb).max() / np.abs(eb).max())
-        ta, tb = [], []
+        renderers = {
+            "every": Renderer(scene, static_readout=False),
+            "once": Renderer(scene, static_readout=False),
+            "default": Renderer(scene),
+        }
+        renderers["every"]._fractions = lambda own, images: None  # made with each frame's shading
+        out = {k: r.frame(0)[0] for k, r in renderers.items()}
+        for r in renderers.values():
+            r.frame(0)
+        ref = np.asarray(out["every"].irradiance)
+        times = {k: [] for k in renderers}
         for _ in range(args.frames):
-            ta.append(once.frame(0)[1]["total_ms"])
-            tb.append(every.frame(0)[1]["total_ms"])
-        ma, mb = float(np.median(ta)), float(np.median(tb))
+            for k, r in renderers.items():
+                times[k].append(r.frame(0)[1]["total_ms"])
+        med = {k: float(np.median(v)) for k, v in times.items()}
+        diff = {
+            k: float(np.abs(np.asarray(out[k].irradiance) - ref).max() / np.abs(ref).max()) for k in ("once",)
+        }
+        last = np.asarray(renderers["default"].frame(0)[0].irradiance)  # a read-out frame
+        diff["default"] = float(np.abs(last - ref).max() / np.abs(ref).max())
         print(
-            f"{cfg}: made once {ma:.2f} ms, every frame {mb:.2f} ms ({ma / mb:.2f}x); "
-            f"largest difference {diff:.1e} of the maximum",
+            f"{cfg}: fractions every frame {med['every']:.2f} ms, once {med['once']:.2f} ms "
+            f"({med['once'] / med['every']:.2f}x), read out with the image offset {med['default']:.2f} ms "
+            f"({med['default'] / med['every']:.2f}x; read out {renderers['default'].readout_frames} frames); "
+            f"largest difference {diff['once']:.1e} / {diff['default']:.1e} of the maximum",
             flush=True,
         )
 

@@ -12,7 +12,9 @@ bounding-sphere centre (``[method] bsv_center = "placed"``, the default), receiv
 stay where they are (:mod:`jshadow.readout`) — the per-receiver part of the field and of the
 combination (cells, rotations, the lights' functionals) is computed once, and each frame only reads
 the field's table (``static_readout``, on by default); a deforming occluder's own vertices, which
-move, are shaded by the general path in the same call.
+move, are shaded by the general path in the same call. With occlusion images, an occluder that
+keeps its shape has its receivers' visible fractions made once, and the lights shadowed through
+them contribute a constant per receiver, which the read-out frames add (``Readout.offset``).
 ``split_stages=True`` runs the shading as three calls instead (receivers, field, combination) so
 that each can be timed; the one-call shading is faster (fewer dispatches and synchronisations, and
 XLA schedules the stages together: the animated bunny's shading 1.99 ms against 2.57 ms split,
