@@ -393,6 +393,7 @@ class Renderer:
         # are the same at every frame), the receivers' visible fractions made from them, once
         self._static_fractions = None
         self.fraction_computations = 0
+        self._shapes_static = all(shape_is_static(o) for o in scene.occluders)
         # static_readout: None until decided, then False or (Readout, points, normals, centre)
         self.static_readout = static_readout
         self._readout = None
@@ -407,7 +408,7 @@ class Renderer:
         if self._readout is None:
             scene = self.scene
             split = self._image_split(own, images)
-            if split is not None:  # a static scene's image terms: an offset (_prepare_image_offset)
+            if split is not None:  # a static scene's image terms: an offset (_with_image_offset)
                 reason = readout_unsupported(split[0], bsvs, None, None, None)
             else:
                 reason = readout_unsupported(scene, bsvs, own, images, self._lighting.env_lights)
@@ -449,8 +450,8 @@ class Renderer:
         without those lights — no sphere lights, no environment lights —, whose frames the readout
         can take; the image terms are then a constant offset per receiver
         (:meth:`_with_image_offset`). None otherwise, or when the own vertices' visibility SH is
-        cast (``self_visibility = "rays"``)."""
-        if images is None or not all(shape_is_static(o) for o in self.scene.occluders):
+        cast (``self_visibility = "rays"``) or there is no environment (nothing left to read out)."""
+        if images is None or not self._shapes_static or self.scene.environment is None:
             return None
         if own is not None and own[0] is not None:
             return None
@@ -561,7 +562,7 @@ class Renderer:
         shape: the renderer's lights and placements are fixed, so the receivers (a static mesh's
         own vertices included), the images and the own-vertex rows are then the same at every
         frame, and so are the fractions. None otherwise (each frame makes them with its shading)."""
-        if images is None or not all(shape_is_static(o) for o in self.scene.occluders):
+        if images is None or not self._shapes_static:
             return None
         if self._static_fractions is None:
             points, normals = receivers_at_time(self.scene, 0.0)
