@@ -123,8 +123,11 @@ class Method:
     blur: 0.5–1.0 % relative RMSE on the mesh scenes with sphere lights against 2.5–9 % (BENCHMARKS.md
     "Sharp sphere-light shadows"), at the cost of the images (from the BSV's own edge-scan pass)
     and the lookups (run only for receivers whose cone toward the light may meet an occluder's
-    bounding sphere: 2.2–3.0× the default's frame on the deforming configs, 6.3× on the static
-    spot_sunset, BENCHMARKS.md "Skipping the receivers that cannot be shadowed"). It needs the
+    bounding sphere: 2.6–3.0× the n-band path's frame on the deforming configs; a renderer of a
+    scene whose meshes keep their shape makes them once and reads its frames out, 1.01–1.03× —
+    BENCHMARKS.md "The default against the paper, every scene in one run"). A config takes it by
+    default where it applies (``light_visibility = "auto"``, :func:`jshadow.config.build_scene`);
+    this class's default stays "sh". It needs the
     edge-scan (shell > 1, closed meshes). Differentiable through the
     coverage images (:func:`jshadow.scene.occluder_images`): the lookups carry the silhouette term
     of the mesh's vertices and the read points' motion (lights, receivers), an estimate within
@@ -307,9 +310,12 @@ class MeshOccluder(eqx.Module):
     def deforms(self) -> bool:
         return self.deform is not None
 
+    def unit_pose(self, t: Float[Array, ""] | float = 0.0) -> Float[Array, "V 3"]:
+        """The deformed unit-frame vertices (V, 3) at time t (the rest pose for a rigid mesh)."""
+        return self.unit_vertices if self.deform is None else self.deform(self.unit_vertices, t)
+
     def vertices(self, t: Float[Array, ""] | float = 0.0) -> Float[Array, "V 3"]:
-        x = self.unit_vertices if self.deform is None else self.deform(self.unit_vertices, t)
-        return self.center + self.radius * x
+        return self.center + self.radius * self.unit_pose(t)
 
 
 _REST_SHAPES: dict = {}  # _faces_key(faces) -> the last concrete MeshOccluder constructed with them

@@ -461,15 +461,13 @@ class Renderer:
 
     def _with_image_offset(self, ro, split, bsvs, own, images):
         """``ro`` with its offset: the static scene's whole frame less the frame of ``split``'s
-        scene and lighting (the same field, only the SH-lit terms), both by the general path once;
-        every read-out frame then adds it to the SH terms it reads (the same numbers as the general
-        path up to rounding)."""
+        scene and lighting (the same field, only the SH-lit terms), both by the general path once
+        (the whole frame by the renderer's own one call, compiled already when a one-frame scene
+        prepares at its second frame); every read-out frame then adds it to the SH terms it reads
+        (the same numbers as the general path up to rounding)."""
         analytic = self.sphere_path == "analytic"
         t = jnp.asarray(0.0, self.scene.receivers.points.dtype)
-        fractions = self._fractions(own, images)
-        full = _place_and_shade(
-            self.scene, bsvs, t, self._lighting, analytic, self._shared_normal, own, None, fractions
-        )
+        full = self._shade_once(bsvs, t, own, images)
         sh_scene, sh_lighting = split
         sh = _place_and_shade(sh_scene, bsvs, t, sh_lighting, analytic, self._shared_normal)
         fixed = ro.inv_d.shape[0]

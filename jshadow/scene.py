@@ -266,8 +266,7 @@ def _sampler_vertices(occ: MeshOccluder, t, m) -> Float[Array, "W 3"]:
     (BENCHMARKS.md, "Every parameter's frame gradient, and moving an occluder": the position's
     frame gradient 2.5–7× cheaper)."""
     c = jax.lax.stop_gradient(occ.center)
-    x = occ.unit_vertices if occ.deform is None else occ.deform(occ.unit_vertices, t)
-    v = c + occ.radius * x  # occ.vertices(t), bitwise
+    v = c + occ.radius * occ.unit_pose(t)  # occ.vertices(t), bitwise
     return with_center_anchors(v, c) if _placed(occ, m) else v
 
 

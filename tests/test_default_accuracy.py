@@ -11,17 +11,21 @@ it was measured to be; never brighter than unoccluded by more than 1 %.
 """
 
 import pathlib
+import sys
 import tomllib
 
 import numpy as np
 import pytest
 
-from jshadow import render
-from jshadow.config import build_scene, config_from_dict
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1] / "experiments"))
+import models  # noqa: E402
+
+from jshadow import render  # noqa: E402
+from jshadow.config import build_scene, config_from_dict  # noqa: E402
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
-REFS = ROOT / "experiments" / "results" / "refs"
-PAPER = dict(shell=1.0, model="paper", bsv_bands=4, shading="product", bsv_center="box")
+REFS = models.REFS
+PAPER = models.VARIANTS["paper"]  # the paper's method as experiments/defaults.py renders it
 
 # config -> (reference case, frame, relative RMSE the default must reach [%], paper / default at least)
 CASES = {

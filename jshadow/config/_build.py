@@ -27,7 +27,7 @@ from ..entities import (
     shape_is_static,
 )
 from ._errors import ConfigError
-from ._schema import Config, OccluderConfig
+from ._schema import _AUTO_FALLBACK, Config, OccluderConfig
 
 __all__ = ["build_scene", "plane_receivers", "rotate_latlong_y", "clear_file_cache"]
 
@@ -207,6 +207,8 @@ def _bsv_images(config: Config, occluders: tuple) -> str:
 
 
 AUTO_ENVIRONMENT_LIGHTS = 32  # what environment_lights = "auto" takes for a lat-long map
+# the n-band light path: what the light options' "auto" falls back to (MethodConfig.to_method's too)
+_N_BAND = {k: _AUTO_FALLBACK[k] for k in ("light_visibility", "environment_lights", "self_visibility")}
 
 
 def auto_light_path(
@@ -221,9 +223,10 @@ def auto_light_path(
       (:func:`jshadow.entities.shape_is_static`) has its bright part split off as
       K = :data:`AUTO_ENVIRONMENT_LIGHTS` distant lights, shadowed through the images (their
       visible fractions are then made once, :class:`jshadow.Renderer`); over a deforming mesh the
-      map stays on the n-band path (K = 0: 32 directions looked up every frame add 11.7–22.7 ms
-      to the animated bunny's 5.0–6.4 ms frame in two runs of ``bench_light_images.py``,
-      BENCHMARKS.md "Coverage images", "Skipping the receivers that cannot be shadowed");
+      map stays on the n-band path (K = 0: 32 directions looked up every frame add 11.3–22.7 ms
+      to the animated bunny's 4.5–6.4 ms frame in three runs of ``bench_light_images.py``, and
+      its own vertices' lamp rays, about 140 ms per cast, would be cast every frame;
+      BENCHMARKS.md "The default against the paper, every scene in one run");
     * sphere lights (``has_lights``) are shadowed through the images;
     * with the map's lamps split off and the own vertices among the receivers (``self_shadow``),
       ``self_visibility = "light_rays"``: the own vertices' shadows of the lamps by exact rays (the
@@ -240,7 +243,7 @@ def auto_light_path(
     sphere-light and map scenes, BENCHMARKS.md "The floor of any extrapolation model"); through
     the images the sphere-light scenes reach 0.5–1.0 % (BENCHMARKS.md "The default against the
     paper"), at 2.6–3.0× the n-band path's warm frame on the deforming configs (a fresh frame about
-    the same), 0.05–0.25× the paper's."""
+    the same), 0.07–0.25× the paper's."""
     from ..geometry import mesh_is_closed_manifold
 
     meshes = [o for o in occluders if isinstance(o, MeshOccluder)]
@@ -254,7 +257,7 @@ def auto_light_path(
     if applies and (has_lights or k):
         own = "light_rays" if k and self_shadow else "field"
         return {"light_visibility": "images", "environment_lights": k, "self_visibility": own}
-    return {"light_visibility": "sh", "environment_lights": 0, "self_visibility": "field"}
+    return dict(_N_BAND)
 
 
 def _light_path(config: Config, occluders: tuple, has_lights: bool) -> dict:
@@ -271,7 +274,7 @@ def _light_path(config: Config, occluders: tuple, has_lights: bool) -> dict:
     m = config.method
     env = config.environment
     hdr = env is not None and env.type == "hdr"
-    chosen = {"light_visibility": "sh", "environment_lights": 0, "self_visibility": "field"}
+    chosen = dict(_N_BAND)
     if m.light_visibility != "auto":
         chosen["light_visibility"] = m.light_visibility
     elif m.preset == "default" and config.fit is None:
