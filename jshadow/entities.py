@@ -23,7 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
-from ._numerics import safe_acos, safe_atan2
+from ._numerics import eps, safe_acos, safe_atan2
 
 __all__ = [
     "Method",
@@ -40,6 +40,7 @@ __all__ = [
     "sky_radiance",
     "receivers_at",
     "receivers_at_time",
+    "surface_offset",
     "remembered_rest_shape",
 ]
 
@@ -452,6 +453,34 @@ def frame_time(frame: int, n_frames: int) -> float:
     if not (0 <= frame < max(n_frames, 1)):
         raise ValueError(f"frame {frame} out of range for an animation of {n_frames} frames")
     return 0.0 if n_frames <= 1 else frame / (n_frames - 1)
+
+
+def surface_offset(scene: Scene, t, points: Float[Array, "N 3"] | None = None) -> Float[Array, ""]:
+    """The lift ε of a receiver that lies on a surface (an occluder's own vertex): its rays start ε
+    along its normal and ignore hits closer than ε, ``ε = eps(dtype, 100) · extent`` with the
+    extent the largest side of the box around the scene at time t — receivers, mesh vertices, the
+    sphere occluders' balls and the lights' centres (about 1.2e-4 of it in float32).
+
+    One convention for the reference renderer and the shadow field's own-vertex rays, so that
+    they see the same surface: where a vertex normal disagrees with an adjacent face (creases,
+    sliver faces) the grazing rays it blocks are counted alike. ``points``: the receivers at t
+    (:func:`receivers_at_time`, computed here when None). A scalar of the scene's dtype; traceable.
+    """
+    dtype = scene.dtype
+    if points is None:
+        points, _ = receivers_at_time(scene, t)
+    pts = [jnp.reshape(jnp.asarray(points, dtype), (-1, 3))]
+    for occ in scene.occluders:
+        if isinstance(occ, SphereOccluder):
+            c, r = jnp.asarray(occ.center, dtype), jnp.asarray(occ.radius, dtype)
+            pts += [(c - r)[None], (c + r)[None]]
+        elif isinstance(occ, MeshOccluder):
+            pts.append(jnp.asarray(occ.vertices(t), dtype))
+    for light in scene.lights:
+        pts.append(jnp.reshape(jnp.asarray(light.center, dtype), (1, 3)))
+    allp = jnp.concatenate(pts, 0)
+    extent = jnp.max(jnp.max(allp, 0) - jnp.min(allp, 0))
+    return eps(dtype, 100.0) * jnp.maximum(extent, jnp.asarray(1e-30, dtype))
 
 
 def receivers_at(scene: Scene, frame: int = 0) -> tuple[Float[Array, "N 3"], Float[Array, "N 3"]]:

@@ -22,7 +22,8 @@ far: every occluder in a ray's way blocks it.
 Receivers are those of :func:`jshadow.entities.receivers_at` (plane receivers, then the deformed
 mesh vertices when ``scene.self_shadow``). Self-shadow receivers lie *on* the mesh, so ray origins
 are offset along the normal by ``ε = eps(dtype, 100) · scene size`` (about 1.2e-4 of the scene's
-extent in float32, 2.2e-13 in float64), and hits closer than ε are ignored. Where the vertex normal
+extent in float32, 2.2e-13 in float64; :func:`jshadow.entities.surface_offset`, which the shadow
+field's own-vertex rays share), and hits closer than ε are ignored. Where the vertex normal
 disagrees with an adjacent face (sharp features), rays grazing that face may still be blocked by
 it: that is the receiver's own geometry, counted as occlusion.
 
@@ -42,8 +43,16 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, PRNGKeyArray
 
-from ._numerics import eps, safe_div, safe_sqrt
-from .entities import Environment, MeshOccluder, Scene, SphereOccluder, frame_time, receivers_at
+from ._numerics import safe_div, safe_sqrt
+from .entities import (
+    Environment,
+    MeshOccluder,
+    Scene,
+    SphereOccluder,
+    frame_time,
+    receivers_at,
+    surface_offset,
+)
 from .sampling import (
     EnvironmentSampler,
     environment_pdf,
@@ -236,20 +245,6 @@ def _visible(geo: _Geometry, meshes_host, origins, dirs, tmax, blocked, contrib)
     return todo
 
 
-def _scene_size(points, scene: Scene, meshes) -> float:
-    pts = [np.asarray(points)]
-    for occ in scene.occluders:
-        if isinstance(occ, SphereOccluder):
-            c, r = np.asarray(occ.center), float(occ.radius)
-            pts += [c - r, c + r]
-    for v, _ in meshes:
-        pts.append(np.asarray(v))
-    for light in scene.lights:
-        pts.append(np.asarray(light.center)[None])
-    allp = np.concatenate([np.reshape(a, (-1, 3)) for a in pts])
-    return float(max(np.max(np.ptp(allp, axis=0)), 1.0e-30))
-
-
 def reference(
     scene: Scene,
     spp: int,
@@ -313,7 +308,6 @@ def reference(
             None if env.image is None else jnp.asarray(env.image, dtype),
             env.kind,
         )
-    size = _scene_size(points, scene, meshes)
 
     def stack3(xs):
         return jnp.asarray(np.reshape([np.asarray(x) for x in xs], (-1, 3)), dtype)
@@ -329,7 +323,7 @@ def reference(
         ),
         environment=env,
         env_sampler=environment_sampler(env) if env is not None and env.kind == "hdr" else None,
-        offset=jnp.asarray(eps(dtype, 100.0) * size, dtype),
+        offset=jnp.asarray(surface_offset(scene, t, points), dtype),
     )
     meshes_host = []
     for vertices, _ in meshes:

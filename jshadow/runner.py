@@ -127,6 +127,7 @@ def _combine_piece(
         fractions,
         env_fraction,
         env_visibility,
+        own,
     )
     return e, e * (scene.receivers.albedo / math.pi)
 

@@ -44,10 +44,17 @@ from .entities import (
     frame_time,
     receivers_at_time,
     remembered_rest_shape,
+    surface_offset,
 )
 from .envlights import EnvironmentLights, split_environment
 from .field import bsv_visibility_and_distance, sphere_light_blocked, sphere_visibility_sh, unit_visibility
-from .geometry import bounding_sphere, cone_may_meet_sphere, fan_may_meet_sphere, with_center_anchors
+from .geometry import (
+    bounding_sphere,
+    cone_may_meet_sphere,
+    fan_may_meet_sphere,
+    vertex_normals,
+    with_center_anchors,
+)
 from .lights import (
     IrradianceMap,
     environment_irradiance,
@@ -572,12 +579,16 @@ def self_visibility_owners(scene: Scene) -> np.ndarray:
     return np.concatenate(rows)
 
 
+_surface_offset = eqx.filter_jit(surface_offset)  # one compiled call (eagerly, many small dispatches)
 _OWN: list = []  # [(key, own visibility)] of concrete poses, most recent last (at most 8)
 
 
 def occluder_own_visibility(occ: MeshOccluder, t, scene: Scene, cache: bool = True) -> Float[Array, "V n2"]:
-    """(V, n²) visibility of a mesh occluder at its own vertices at time t, by rays
-    (:func:`jshadow.visibility.vertex_visibility_sh` with ``method.self_visibility_grid``).
+    """(V, n²) shadowed diffuse transfer of a mesh occluder at its own vertices at time t, by rays
+    (:func:`jshadow.visibility.vertex_visibility_sh` with ``transfer=True``, the scene's
+    :func:`jshadow.entities.surface_offset` and ``method.self_visibility_grid``): the SH of
+    ``V(ω)·max(0, n·ω)``, which :func:`combine` takes in place of the clamped cosine at these
+    vertices (their own field visibility is then 1).
 
     A concrete pose (vertices and faces not traced) is cast once and kept: :func:`render` called
     again on a shape it has seen (another frame of a rigid mesh, another light position) reuses
@@ -587,22 +598,28 @@ def occluder_own_visibility(occ: MeshOccluder, t, scene: Scene, cache: bool = Tr
     :data:`SELF_RAYS_NO_DERIVATIVE`: binary visibility has no derivative to give.
     """
     m = scene.method
-    v = _vertices_at(occ, jnp.asarray(t, occ.unit_vertices.dtype))
+    t = jnp.asarray(t, occ.unit_vertices.dtype)
+    v = _vertices_at(occ, t)
     faces = occ.faces
     grid = tuple(m.self_visibility_grid)
     v_np, f_np = _concrete(v), _concrete(faces)
     if cache and v_np is not None and f_np is not None:
+        with jax.ensure_compile_time_eval():
+            lift = float(_surface_offset(scene, t))
         key = (v_np.shape, str(v_np.dtype), v_np.tobytes(), f_np.shape, f_np.tobytes(), m.sh_bands, grid)
+        key = (*key, lift)
         hit = [own for k, own in _OWN if k == key]
         if not hit:
             with jax.ensure_compile_time_eval():
-                hit = [np.asarray(vertex_visibility_sh(v_np, f_np, m.sh_bands, grid))]
+                own = vertex_visibility_sh(v_np, f_np, m.sh_bands, grid, offset=lift, transfer=True)
+                hit = [np.asarray(own)]
             _OWN.append((key, hit[0]))
             del _OWN[:-8]
         return jnp.asarray(hit[0])
+    lift = jax.lax.stop_gradient(_surface_offset(scene, t))
 
     def forward(x):
-        return vertex_visibility_sh(x, faces, m.sh_bands, grid)
+        return vertex_visibility_sh(x, faces, m.sh_bands, grid, offset=lift, transfer=True)
 
     return _no_derivative_guard(forward, v, SELF_RAYS_NO_DERIVATIVE)
 
@@ -615,28 +632,39 @@ def occluder_own_light_visibility(
 ) -> Float[Array, "V K"]:
     """(V, K) visibility, 0 or 1, of a mesh occluder's own vertices at time t toward K distant
     ``directions`` (the environment lights of :mod:`jshadow.envlights`), by exact rays against
-    the mesh (:func:`jshadow.visibility.ray_fan_any_hit`; an own vertex's faces are seen edge-on
-    and never hit). Cached per concrete pose like :func:`occluder_own_visibility`, and likewise
-    raising :data:`SELF_RAYS_NO_DERIVATIVE` if differentiated with respect to the vertices."""
-    v = _vertices_at(occ, jnp.asarray(t, occ.unit_vertices.dtype))
+    the mesh (:func:`jshadow.visibility.ray_fan_any_hit`) from each vertex lifted by the scene's
+    :func:`jshadow.entities.surface_offset` along its normal, hits closer than that ignored (the
+    reference renderer's convention for a receiver on a surface). Cached per concrete pose like
+    :func:`occluder_own_visibility`, and likewise raising :data:`SELF_RAYS_NO_DERIVATIVE` if
+    differentiated with respect to the vertices."""
+    t = jnp.asarray(t, occ.unit_vertices.dtype)
+    v = _vertices_at(occ, t)
     faces = occ.faces
     v_np, f_np, d_np = _concrete(v), _concrete(faces), _concrete(directions)
     if cache and v_np is not None and f_np is not None and d_np is not None:
-        key = (v_np.shape, str(v_np.dtype), v_np.tobytes(), f_np.tobytes(), d_np.tobytes())
+        with jax.ensure_compile_time_eval():
+            lift = float(_surface_offset(scene, t))
+        key = (v_np.shape, str(v_np.dtype), v_np.tobytes(), f_np.tobytes(), d_np.tobytes(), lift)
         hit = [vis for k, vis in _OWN_LIGHTS if k == key]
         if not hit:
             with jax.ensure_compile_time_eval():
-                hit = [np.asarray(~ray_fan_any_hit(v_np, d_np.astype(v_np.dtype), v_np, f_np), v_np.dtype)]
+                hit = [np.asarray(_lamp_rays(v_np, f_np, d_np.astype(v_np.dtype), lift))]
             _OWN_LIGHTS.append((key, hit[0]))
             del _OWN_LIGHTS[:-8]
         return jnp.asarray(hit[0])
+    lift = jax.lax.stop_gradient(_surface_offset(scene, t))
 
     def forward(x):
-        return (~ray_fan_any_hit(x, jax.lax.stop_gradient(directions).astype(x.dtype), x, faces)).astype(
-            x.dtype
-        )
+        return _lamp_rays(x, faces, jax.lax.stop_gradient(directions).astype(x.dtype), lift)
 
     return _no_derivative_guard(forward, v, SELF_RAYS_NO_DERIVATIVE)
+
+
+def _lamp_rays(v, faces, directions, lift) -> Float[Array, "V K"]:
+    """1 where the ray from vertex v lifted by ``lift`` along its normal toward a direction is free."""
+    normals = vertex_normals(v, faces)
+    origins = v + jnp.asarray(lift, v.dtype) * normals
+    return (~ray_fan_any_hit(origins, directions, v, faces, t_min=lift)).astype(v.dtype)
 
 
 def self_light_rows(scene: Scene, own: list, k: int) -> Float[Array, "N K"]:
@@ -1095,8 +1123,9 @@ def occluder_visibilities(
 
     ``own``: None, or ``(rows, owners)`` — (N, n²) and (N,) int — from :func:`own_rows_at_time`
     (or a piece of them, sliced like ``points``): receiver r's visibility of occluder
-    ``owners[r]`` is ``rows[r]`` instead of the field's (``self_visibility = "rays"``; rows None:
-    the field's throughout).
+    ``owners[r]`` is 1 instead of the field's, its cast transfer ``rows[r]`` standing for its
+    clamped cosine in :func:`combine` (``self_visibility = "rays"``; rows None: the field's
+    throughout).
     """
     n = scene.method.sh_bands
     table = occlusion_table(scene) if any(b is not None for b in bsvs) else None
@@ -1137,10 +1166,13 @@ def occluder_visibilities(
         for j, i in enumerate(idx):
             vis[i], dist[i] = vs[j], ds[j]
     if own is not None and own[0] is not None:
-        rows, owners = own[0], own[1]
+        # the own vertices' cast rows are their transfer (combine takes them for the clamped
+        # cosine): their own occluder's visibility there is 1
+        owners = own[1]
         for i, occ in enumerate(scene.occluders):
             if isinstance(occ, MeshOccluder):
-                vis[i] = jnp.where((owners == i)[:, None], rows.astype(vis[i].dtype), vis[i])
+                unit = unit_visibility((1,), n, vis[i].dtype)
+                vis[i] = jnp.where((owners == i)[:, None], unit, vis[i])
     return vis, dist
 
 
@@ -1383,6 +1415,7 @@ def combine(
     light_fractions: list | None = None,
     env_fraction: tuple[Float[Array, "N 3"], Bool[Array, " N"]] | None = None,
     env_visibility: tuple[Float[Array, "N n2"], Float[Array, "N n2"]] | None = None,
+    own: tuple[Array, ...] | None = None,
 ) -> Float[Array, "N 3"]:
     """Irradiance (N, 3) from the occluders' visibilities and the scene's lights.
 
@@ -1426,6 +1459,12 @@ def combine(
     empty; the scene must pass :func:`uses_visibility_chain`). With several occluders the
     environment's term needs only ``⟨V₁ ⊛ … ⊛ V_m, w_c⟩ = restᵀ P(w_c) last`` (P(w) "multiply by
     w", symmetric): one GEMM for the shared-normal rows instead of the last triple product.
+
+    ``own``: the tuple of :func:`own_rows_at_time` (sliced like ``points``) or None. With cast rows
+    (``self_visibility = "rays"``) each own vertex's occluded SH terms take its cast transfer
+    ``rows[r]`` (:func:`occluder_own_visibility`) in place of its clamped cosine (its own
+    occluder's visibility in ``vis`` is then 1, :func:`occluder_visibilities`); the unoccluded
+    terms of ratio shading keep the clamped cosine.
     """
     n = scene.method.sh_bands
     ratio = scene.method.shading == "ratio"
@@ -1440,6 +1479,14 @@ def combine(
         both = ((0, shared, normals[:1]), (shared, n_rec, normals[shared:]))
         groups = tuple(g for g in both if g[1] > g[0])
     transfers = [sh.clamped_cosine(nrm, n) for _, _, nrm in groups]  # max(0, n·ω): (1 or rows, n²)
+    # the occluded terms' transfers: an own vertex's cast transfer where the scene casts them
+    occ_transfers = transfers
+    if own is not None and own[0] is not None:
+        rows, mine = own[0].astype(dtype), own[1] >= 0
+        occ_transfers = [
+            t if t.shape[0] == 1 else jnp.where(mine[a:b, None], rows[a:b], t)
+            for (a, b, _), t in zip(groups, transfers, strict=True)
+        ]
 
     def by_group(x, shared_fn, row_fn, finish=lambda part, k: part):
         """(N, ·) rows from per-receiver ``x`` (N, ·): ``shared_fn(x, T₀)`` for a shared-normal group
@@ -1448,7 +1495,7 @@ def combine(
         (so that a group's shared (1, ·) terms broadcast instead of being stored per row)."""
         parts = [
             finish(shared_fn(x, t[0])[a:b] if t.shape[0] == 1 else row_fn(x[a:b], t), k)
-            for k, ((a, b, _), t) in enumerate(zip(groups, transfers, strict=True))
+            for k, ((a, b, _), t) in enumerate(zip(groups, occ_transfers, strict=True))
         ]
         return jnp.concatenate(parts, 0) if len(parts) > 1 else parts[0]
 
@@ -1488,7 +1535,7 @@ def combine(
         if isinstance(v_all, tuple):
             rest, last = v_all
             parts = []
-            for k, ((a, b, _), t) in enumerate(zip(groups, transfers, strict=True)):
+            for k, ((a, b, _), t) in enumerate(zip(groups, occ_transfers, strict=True)):
                 if t.shape[0] == 1:  # Σ_ij rest_i P(w_c)_ij last_j with w_c = M_env[c] T₀
                     w = jnp.einsum("cik,k->ci", m_env, t[0])
                     part = _env_rows(rest, sh.product_matrix(w), last)[a:b]
@@ -1560,7 +1607,7 @@ def combine(
             unit = unit_visibility((points.shape[0],), n, dtype)
             v_near = None if len(near) == 1 else _product([jnp.where(m[:, None], vj, unit) for vj, m in near])
             parts = []
-            for k, ((a, b, _), t) in enumerate(zip(groups, transfers, strict=True)):
+            for k, ((a, b, _), t) in enumerate(zip(groups, occ_transfers, strict=True)):
                 if t.shape[0] == 1:
                     # ⟨V, T₀ ⊛ cap⟩ = ⟨V P(T₀), cap⟩ with P(T₀) the matrix of "multiply by T₀": one
                     # GEMM, then the light's fused dot; one occluder selects after the GEMM (V ↦ V P
@@ -1644,6 +1691,7 @@ def render_at(
         shared_normal=shared,
         light_fractions=fractions,
         env_fraction=env_fraction,
+        own=own,
     )
     radiance = e * (scene.receivers.albedo / math.pi)
     return RenderResult(points=points, normals=normals, irradiance=e, radiance=radiance)

@@ -219,7 +219,8 @@ def test_light_visibility_auto_takes_the_images_where_they_apply(tmp_path):
     the images for a sphere light, or a lat-long map over closed meshes that keep their shape (32
     distant lights for the map); the n-band path with a fit, the paper's preset or shell, the
     brute-force BSV, an open mesh, sphere occluders only, or nothing sharp to shadow; explicit
-    choices are kept."""
+    choices are kept. ``self_visibility = "auto"``: "rays" for the own vertices of meshes that keep
+    their shape, else "field"."""
     from pathlib import Path
 
     from jshadow.config import build_scene
@@ -243,12 +244,24 @@ def test_light_visibility_auto_takes_the_images_where_they_apply(tmp_path):
 
     assert chosen(base) == ("images", 0)
     assert chosen({**base, "environment": studio}) == ("images", 32)
-    # the own vertices among the receivers: their shadows of the lamps by rays (cast once)
+    # the own vertices among the receivers of meshes that keep their shape: their transfer (and
+    # their view of the lamps) by rays, cast once, with or without anything sharp to shadow
     own = {**base["receiver"], "self_shadow": True}
-    assert chosen({**base, "environment": studio, "receiver": own}, "light_rays") == ("images", 32)
-    assert chosen({**base, "receiver": own}) == ("images", 0)  # no lamps: the field
+    assert chosen({**base, "environment": studio, "receiver": own}, "rays") == ("images", 32)
+    assert chosen({**base, "receiver": own}, "rays") == ("images", 0)
+    assert chosen({**base, "light": [], "receiver": own}, "rays") == ("sh", 0)  # a constant sky
     keep = {"self_visibility": "field"}
     assert chosen({**base, "environment": studio, "receiver": own, "method": keep}) == ("images", 32)
+    keep = {"self_visibility": "light_rays"}
+    assert chosen({**base, "environment": studio, "receiver": own, "method": keep}, "light_rays") == (
+        "images",
+        32,
+    )
+    bent = [{**egg, "deform": {"type": "bend", "amount": [0.0, 0.5]}}]  # deforming: the field
+    assert chosen({**base, "occluder": bent, "receiver": own}) == ("images", 0)
+    # the n-band path asked for by name keeps the field (what it meant before "auto")
+    assert chosen({**base, "receiver": own, "method": {"light_visibility": "sh"}}) == ("sh", 0)
+    assert chosen({**base, "receiver": own, "method": {"preset": "paper"}}) == ("sh", 0)
     assert chosen({**base, "light": [], "environment": studio}) == ("images", 32)
     assert chosen({**base, "light": []}) == ("sh", 0)  # a constant sky: nothing sharp
     # a deforming mesh: the map's lamps stay on the n-band path (looked up every frame otherwise)

@@ -81,6 +81,29 @@ def test_t_range(bunny, rng):
     assert scaled.all()
 
 
+def test_fan_t_min_matches_the_watertight_test(bunny, rng):
+    """A fan with ``t_min`` ignores the hits at t ≤ t_min as :func:`ray_triangle_any_hit` does (the
+    same rays, scalar t_min, concrete or traced), and None is the plain t > 0 test."""
+    _, v, f = bunny
+    o, _ = _bunny_rays(rng, v, 24)
+    d = random_dirs(rng, (24, 64))
+    v32, o32, d32 = v.astype(np.float32), o.astype(np.float32), d.astype(np.float32)
+    ob = np.broadcast_to(o32[:, None], d32.shape)
+    plain = np.asarray(ray_fan_any_hit(o32, d32, v32, f))
+    np.testing.assert_array_equal(plain, np.asarray(ray_triangle_any_hit(ob, d32, v32, f)))
+    scale = float(np.ptp(v, axis=0).max())
+    counts = []
+    for t_min in (0.05 * scale, 0.3 * scale, 0.8 * scale):
+        want = np.asarray(ray_triangle_any_hit(ob, d32, v32, f, t_min=t_min))
+        np.testing.assert_array_equal(np.asarray(ray_fan_any_hit(o32, d32, v32, f, t_min=t_min)), want)
+        traced = jax.jit(lambda tm: ray_fan_any_hit(o32, d32, v32, f, t_min=tm))(np.float32(t_min))
+        np.testing.assert_array_equal(np.asarray(traced), want)
+        counts.append(int(want.sum()))
+    assert plain.sum() > counts[0] > counts[-1] > 0  # the range cuts hits off, and not all of them
+    with pytest.raises(ValueError, match="scalar"):
+        ray_fan_any_hit(o32, d32, v32, f, t_min=np.ones(2, np.float32))
+
+
 def _closed_meshes():
     ico = trimesh.creation.icosphere(subdivisions=2, radius=1.0)
     box = trimesh.creation.box(extents=(2.0, 2.0, 2.0))

@@ -228,15 +228,16 @@ def auto_light_path(
       its own vertices' lamp rays, about 140 ms per cast, would be cast every frame;
       BENCHMARKS.md "The default against the paper, every scene in one run");
     * sphere lights (``has_lights``) are shadowed through the images;
-    * with the map's lamps split off and the own vertices among the receivers (``self_shadow``),
-      ``self_visibility = "light_rays"``: the own vertices' shadows of the lamps by exact rays (the
-      images cannot resolve a ray from a point on the mesh), cast once since the shapes do not
-      change (the studio bunny's 1901 vertices × 32 lamps; its vertices 24.1 → 4.4 % relative RMSE,
-      BENCHMARKS.md "The default against the paper");
 
     light visibility "images" if the first or second applies, else "sh" (the n-band path), with
-    K = 0 and "field". (For a config, :func:`build_scene` asks this only for the default preset
-    without ``[fit]``.)
+    K = 0. Independently of the images, ``self_visibility = "rays"`` where the own vertices are
+    receivers (``self_shadow``) and every mesh keeps its shape: each own vertex's shadowed transfer
+    by rays (and its visibility of the lamps where they are split off), cast once, instead of the
+    field's extrapolation inward (:func:`jshadow.scene.occluder_own_visibility`; the bunny's
+    vertices under a sky 9.7 → 0.3 % relative RMSE, BENCHMARKS.md "Self-shadowing by the cast
+    transfer"); a deforming mesh keeps "field" (the cast, 0.4–0.9 s for the bunny at the default
+    grid, would be made every frame). (For a config, :func:`build_scene` asks this only for the
+    default preset without ``[fit]``.)
 
     Why: the n-band path cannot shadow small bright sources within the accuracy targets (exact
     4-band visibility at every receiver still leaves 2.5–19 % relative RMSE on the shipped
@@ -247,24 +248,26 @@ def auto_light_path(
     from ..geometry import mesh_is_closed_manifold
 
     meshes = [o for o in occluders if isinstance(o, MeshOccluder)]
+    static = bool(meshes) and all(shape_is_static(o) for o in meshes)
+    own = "rays" if self_shadow and static else "field"
     applies = (
         shell > 1.0
         and bsv_method != "brute"
         and bool(meshes)
         and all(mesh_is_closed_manifold(np.asarray(o.faces)) for o in meshes)  # faces are concrete
     )
-    k = AUTO_ENVIRONMENT_LIGHTS if hdr and all(shape_is_static(o) for o in meshes) else 0
+    k = AUTO_ENVIRONMENT_LIGHTS if hdr and static else 0
     if applies and (has_lights or k):
-        own = "light_rays" if k and self_shadow else "field"
         return {"light_visibility": "images", "environment_lights": k, "self_visibility": own}
-    return dict(_N_BAND)
+    return dict(_N_BAND, self_visibility=own)
 
 
 def _light_path(config: Config, occluders: tuple, has_lights: bool) -> dict:
     """What ``[method] light_visibility``, ``environment_lights`` and ``self_visibility`` = "auto"
     (the defaults) mean for this config, as those three keys: :func:`auto_light_path` for the
     default preset without ``[fit]``, else the n-band path ("sh", 0, "field"). An explicit
-    ``light_visibility`` is kept, and with "auto" lights gets K = 0 (what it meant before "auto");
+    ``light_visibility`` is kept, and with "auto" lights gets K = 0 and "field" (what they meant
+    before "auto");
     explicit environment lights need the images; an explicit ``self_visibility`` is kept
     (:meth:`MethodConfig.to_method`).
 
@@ -291,8 +294,8 @@ def _light_path(config: Config, occluders: tuple, has_lights: bool) -> dict:
             "no [fit], shell > 1, the edge-scan, closed meshes and a sphere light or a lat-long map): "
             "set light_visibility = 'images', or leave environment_lights out",
         )
-    if k != "auto":  # the lamps' own-vertex rays come with the lamps "auto" takes
-        chosen.update(environment_lights=k, self_visibility="field")
+    if k != "auto":
+        chosen["environment_lights"] = k
     return chosen
 
 

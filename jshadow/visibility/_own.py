@@ -26,15 +26,18 @@ from ._raycast import _onb, ray_fan_any_hit
 __all__ = ["vertex_visibility_sh"]
 
 
-@partial(jax.jit, static_argnames=("n", "grid", "hemisphere"))
+@partial(jax.jit, static_argnames=("n", "grid", "hemisphere", "transfer"))
 def vertex_visibility_sh(
     vertices: Float[ArrayLike, "V 3"],
     faces: Int[ArrayLike, "F 3"],
     n: int,
     grid: tuple[int, int] = (12, 48),
     hemisphere: bool = True,
+    offset: float | Float[ArrayLike, ""] | None = None,
+    transfer: bool = False,
 ) -> Float[Array, "V n2"]:
-    """n-band SH (world frame) of the visibility of the mesh from each of its own vertices.
+    """n-band SH (world frame) of the visibility of the mesh from each of its own vertices, or of
+    its shadowed diffuse transfer.
 
     ``V_v(ω) = 1`` if the ray ``x_v + t·ω`` (t > 0) hits no face of the mesh, else 0, projected to
     n bands with a Gauss–Legendre (in cos θ) × uniform (in φ) rule of ``grid`` = (θ nodes, φ cells).
@@ -55,6 +58,18 @@ def vertex_visibility_sh(
     fields paper extrapolates its shell (Sec. 4.2) — a replacement for the field's rows at an
     occluder's own vertices (``[method] self_visibility = "rays"``, :func:`jshadow.scene.render`).
 
+    ``offset`` (the scene's :func:`jshadow.entities.surface_offset` ε): each vertex's rays start
+    ε along its normal and ignore hits closer than ε, the reference renderer's convention for a
+    receiver on a surface (without it the rays start at the vertex and its own faces are ignored,
+    so a crease whose faces rise above the normal's plane does not shadow the vertex, where the
+    reference counts them: 16.7 against 2.1 % largest error on the bunny's vertices under a sky).
+
+    ``transfer``: project ``V(ω)·max(0, n·ω)`` instead of V — the vertex's shadowed diffuse
+    transfer (Sloan et al. 2002, "Precomputed radiance transfer", Sec. 5), whose inner product
+    with n-band radiance is the vertex's irradiance without the truncation of V and of the
+    clamped cosine that their SH product carries (:func:`jshadow.scene.combine` takes it in place
+    of the clamped cosine at an own vertex, ``self_visibility = "rays"``).
+
     Limitations: binary visibility has no useful derivative with respect to the vertices (autodiff
     gives zero; :mod:`jshadow.scene` refuses to differentiate it). Cost V·K·F ray–triangle tests
     with K = θ·φ directions; memory bounded as in :func:`ray_fan_any_hit`.
@@ -65,18 +80,27 @@ def vertex_visibility_sh(
         grid: (θ nodes, φ cells) of the direction grid, each ≥ 2: over the hemisphere with
             ``hemisphere``, else over the whole sphere.
         hemisphere: cast over each vertex's normal hemisphere only (see above).
+        offset: None, or ε ≥ 0 in world units (may be traced): lift the origins (see above).
+        transfer: the transfer V·max(0, n·ω) instead of V (see above).
 
     Returns:
         (V, n²) coefficients, dtype of ``vertices``.
     """
     vertices = jnp.asarray(vertices)
+    normals = vertex_normals(vertices, jnp.asarray(faces))
+    origins = vertices if offset is None else vertices + jnp.asarray(offset, vertices.dtype) * normals
     if not hemisphere:
         dirs, w = sphere_grid(*grid, vertices.dtype)
-        hit = ray_fan_any_hit(vertices, dirs, vertices, faces)
-        return project((~hit).astype(vertices.dtype), dirs, w, n)
+        hit = ray_fan_any_hit(origins, dirs, vertices, faces, t_min=offset)
+        vis = (~hit).astype(vertices.dtype)
+        if transfer:
+            vis = vis * jnp.maximum(normals @ dirs.T, 0.0)
+        return project(vis, dirs, w, n)
     local, w = hemisphere_grid(*grid, vertices.dtype)  # z >= 0
-    normals = vertex_normals(vertices, jnp.asarray(faces))
     e1, e2 = _onb(normals)
     frame = jnp.stack([e1, e2, normals], -1)  # (V, 3, 3): local -> world
-    hit = ray_fan_any_hit(vertices, jnp.einsum("vij,kj->vki", frame, local), vertices, faces)
-    return rotate(project((~hit).astype(vertices.dtype), local, w, n), frame)
+    hit = ray_fan_any_hit(origins, jnp.einsum("vij,kj->vki", frame, local), vertices, faces, t_min=offset)
+    vis = (~hit).astype(vertices.dtype)
+    if transfer:
+        vis = vis * local[:, 2]
+    return rotate(project(vis, local, w, n), frame)

@@ -283,7 +283,7 @@ def ray_triangle_any_hit(
 
 
 @partial(jax.jit, static_argnames=("face_chunk", "origin_chunk"))
-def _fan_kernel(o, d, vertices, faces, *, face_chunk, origin_chunk):
+def _fan_kernel(o, d, vertices, faces, t_min=None, *, face_chunk, origin_chunk):
     n = o.shape[0]
     dtype = o.dtype
     faces_p, _, valid = _pad_faces(vertices, faces, face_chunk)
@@ -297,8 +297,11 @@ def _fan_kernel(o, d, vertices, faces, *, face_chunk, origin_chunk):
         jnp.sqrt(jnp.sum(nrm * nrm, axis=-1))[:, None],  # 13: |(b − a) × (c − a)|
         jnp.max(jnp.abs(tri), axis=(-2, -1))[:, None],  # 14: coordinate scale of the corners
     ]
-    # structure of arrays, (chunks, 15, C): no size-3 reductions or gathers in the hot fusions
-    fdat = jnp.concatenate(per_face, axis=-1).reshape(n_chunks, face_chunk, 15).transpose(0, 2, 1)
+    if t_min is not None:
+        per_face.append(nrm)  # 15..17: (b − a) × (c − a), for the hit distance
+    rows = 15 if t_min is None else 18
+    # structure of arrays, (chunks, rows, C): no size-3 reductions or gathers in the hot fusions
+    fdat = jnp.concatenate(per_face, axis=-1).reshape(n_chunks, face_chunk, rows).transpose(0, 2, 1)
     tol = eps(dtype)
 
     g = min(origin_chunk, n)
@@ -335,6 +338,8 @@ def _fan_kernel(o, d, vertices, faces, *, face_chunk, origin_chunk):
             usable = (fd[12][None, :] > 0) & ~flat  # (g, C)
             sgn = jnp.where(vol < 0, -1.0, 1.0).astype(dtype)
             m = [[x * sgn for x in mk] for mk in m]
+            if t_min is not None:
+                far = jnp.abs(vol)  # the hit is beyond t_min iff t_min·|d·N| < |vol|
             for c in range(face_chunk):
                 s_k = [
                     dx * m[k][0][:, c, None] + dy * m[k][1][:, c, None] + dz * m[k][2][:, c, None]
@@ -343,6 +348,10 @@ def _fan_kernel(o, d, vertices, faces, *, face_chunk, origin_chunk):
                 # d lies in the cone of the triangle seen from o (for a usable triangle the m_k span
                 # space, so all s_k = 0 only for d = 0; zero directions are masked below)
                 h = (s_k[0] >= 0) & (s_k[1] >= 0) & (s_k[2] >= 0) & usable[:, c, None]
+                if t_min is not None:
+                    # t = (a − o)·N / (d·N) = vol / (d·N), of one sign with vol for a hit in the cone
+                    dn = dx * fd[15][None, c, None] + dy * fd[16][None, c, None] + dz * fd[17][None, c, None]
+                    h = h & (t_min * jnp.abs(dn) < far[:, c, None])
                 hit = hit | h
             return hit, None
 
@@ -360,10 +369,12 @@ def ray_fan_any_hit(
     vertices: Float[ArrayLike, "V 3"],
     faces: Int[ArrayLike, "F 3"],
     *,
+    t_min: float | Float[ArrayLike, ""] | None = None,
     face_chunk: int = DEFAULT_FAN_FACE_CHUNK,
     origin_chunk: int = DEFAULT_FAN_ORIGIN_CHUNK,
 ) -> Bool[Array, "... K"]:
-    """Any-hit for fans of K rays sharing an origin: ``hit[..., k]`` for the ray ``o + t·d_k``, t > 0.
+    """Any-hit for fans of K rays sharing an origin: ``hit[..., k]`` for the ray ``o + t·d_k``,
+    t > 0, or t > ``t_min`` where given.
 
     Same result as :func:`ray_triangle_any_hit` with ``t_min = 0, t_max = ∞`` (up to rays that
     graze a vertex within rounding), factorised per (origin, triangle) as in notes/bsv-speed.md
@@ -379,6 +390,10 @@ def ray_fan_any_hit(
 
     Args:
         origins: (..., 3); dirs: (..., K, 3), any length (a zero direction never hits).
+        t_min: None, or a scalar ≥ 0 (may be traced): hits at ``t ≤ t_min`` (in units of |d|) are
+            then ignored, and each (ray, triangle) pair also tests the hit distance (three more
+            multiply-adds), as for a receiver lifted off a surface
+            (:func:`jshadow.entities.surface_offset`).
         face_chunk: triangles per ``lax.scan`` step; origin_chunk: origins per ``lax.map`` step.
     """
     vertices, faces = _check_mesh(vertices, faces)
@@ -398,7 +413,13 @@ def ray_fan_any_hit(
         return jnp.zeros((*batch, k), bool)
     o = jnp.broadcast_to(origins, (*batch, 3)).astype(dtype).reshape(n, 3)
     d = jnp.broadcast_to(dirs, (*batch, k, 3)).astype(dtype).reshape(n, k, 3)
-    hit = _fan_kernel(o, d, vertices.astype(dtype), faces, face_chunk=face_chunk, origin_chunk=origin_chunk)
+    if t_min is not None:
+        t_min = jnp.asarray(t_min, dtype)
+        if t_min.shape != ():
+            raise ValueError(f"t_min must be a scalar, got shape {t_min.shape}")
+    hit = _fan_kernel(
+        o, d, vertices.astype(dtype), faces, t_min, face_chunk=face_chunk, origin_chunk=origin_chunk
+    )
     return hit.reshape(*batch, k)
 
 
