@@ -90,7 +90,8 @@ def reshaded(scene, frame, sphere_path, runs) -> float:
 
 def auto_keys(scene) -> dict:
     """The ``[method]`` keys the "auto" options give this scene (built with the n-band light path):
-    ``light_visibility``, ``environment_lights``, ``self_visibility``."""
+    ``light_visibility``, ``environment_lights``, ``self_visibility``, ``directions``,
+    ``light_cap``."""
     m = scene.method
     hdr = scene.environment is not None and scene.environment.kind == "hdr"
     return auto_light_path(scene.occluders, bool(scene.lights), hdr, scene.self_shadow, m.shell, m.bsv_method)
@@ -115,7 +116,7 @@ def main() -> None:
         n_plane = int(np.prod(base.receivers.grid_shape))
         auto = auto_keys(base)
         methods = {"paper": models.VARIANTS["paper"], "n-band": nband}
-        if (auto["light_visibility"], auto["environment_lights"], auto["self_visibility"]) != N_BAND:
+        if tuple(auto[k] for k in ("light_visibility", "environment_lights", "self_visibility")) != N_BAND:
             methods["default"] = dict(nband, **auto)
         rows, got = {}, {}
         for label, method in methods.items():

@@ -109,7 +109,7 @@ def main() -> None:
         + (f" --directions {args.directions}" if args.directions else "")
         + (f" --points {args.points}" if args.points != 141 else ""),
         "config": str(pathlib.Path(args.config).resolve().relative_to(ROOT)),
-        "directions": list(cfg.method.directions),
+        "directions": list(build_scene(cfg).method.directions),
         "param": path,
         "target": truth,
         "amounts": amounts.tolist(),
@@ -130,7 +130,7 @@ def main() -> None:
     for a in ax:
         a.axvline(truth, color="k", ls="--", lw=0.8)
         a.set_xlabel(path)
-    ax[0].set(title=f"loss (relative MSE), {cfg.method.directions[0]}² directions")
+    ax[0].set(title=f"loss (relative MSE), {build_scene(cfg).method.directions[0]}² directions")
     ax[1].set(title="d loss / d amount")
     ax[1].axhline(0.0, color="k", lw=0.5)
     ax[0].legend(fontsize=7)

@@ -291,6 +291,20 @@ def test_light_visibility_auto_takes_the_images_where_they_apply(tmp_path):
     with pytest.raises(ConfigError, match="environment_lights"):
         config_from_dict({**base, "method": {"environment_lights": "many"}})
 
+    # directions and light_cap "auto": sharper images and more cap directions with the images
+    def sizes(d):
+        m = build_scene(config_from_dict(d, root=tmp_path)).method
+        return m.directions, m.light_cap
+
+    assert sizes(base) == ((64, 64), (8, 16))
+    assert sizes({**base, "light": []}) == ((32, 32), (4, 8))  # the n-band path
+    assert sizes({**base, "method": {"preset": "paper"}}) == ((32, 32), (4, 8))
+    assert sizes({**base, "method": {"light_visibility": "images"}}) == ((32, 32), (4, 8))
+    assert sizes({**base, "method": {"directions": [16, 16], "light_cap": "auto"}}) == ((16, 16), (8, 16))
+    assert sizes({**base, "method": {"light_cap": [2, 4]}}) == ((64, 64), (2, 4))
+    with pytest.raises(ConfigError, match="directions"):
+        config_from_dict({**base, "method": {"directions": "many"}})
+
 
 EGG_LIGHT = (
     '[method]\ndirections = [8, 8]\nbsv_grid = [6, 8]\nlight_visibility = "images"\nlight_cap = [2, 4]\n'

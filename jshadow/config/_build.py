@@ -208,16 +208,21 @@ def _bsv_images(config: Config, occluders: tuple) -> str:
 
 AUTO_ENVIRONMENT_LIGHTS = 32  # what environment_lights = "auto" takes for a lat-long map
 # the n-band light path: what the light options' "auto" falls back to (MethodConfig.to_method's too)
-_N_BAND = {k: _AUTO_FALLBACK[k] for k in ("light_visibility", "environment_lights", "self_visibility")}
+_LIGHT_KEYS = ("light_visibility", "environment_lights", "self_visibility", "directions", "light_cap")
+_N_BAND = {k: _AUTO_FALLBACK[k] for k in _LIGHT_KEYS}
+# what directions = "auto" and light_cap = "auto" take with the occlusion images: sharper images
+# and twice the cap directions each way (BENCHMARKS.md "The default against the paper")
+AUTO_IMAGE_DIRECTIONS = (64, 64)
+AUTO_LIGHT_CAP = (8, 16)
 
 
 def auto_light_path(
     occluders, has_lights: bool, hdr: bool, self_shadow: bool, shell: float, bsv_method: str
 ) -> dict:
     """The light path the "auto" options take for a scene's content, as the ``[method]`` keys
-    ``light_visibility``, ``environment_lights`` and ``self_visibility``. Where the occlusion images
-    apply (shell > 1 and ``bsv_method`` not "brute", at least one mesh occluder and every mesh
-    closed):
+    ``light_visibility``, ``environment_lights``, ``self_visibility``, ``directions`` and
+    ``light_cap``. Where the occlusion images apply (shell > 1 and ``bsv_method`` not "brute", at
+    least one mesh occluder and every mesh closed):
 
     * a lat-long map (``hdr``) over meshes that keep their shape
       (:func:`jshadow.entities.shape_is_static`) has its bright part split off as
@@ -229,15 +234,17 @@ def auto_light_path(
       BENCHMARKS.md "The default against the paper, every scene in one run");
     * sphere lights (``has_lights``) are shadowed through the images;
 
-    light visibility "images" if the first or second applies, else "sh" (the n-band path), with
-    K = 0. Independently of the images, ``self_visibility = "rays"`` where the own vertices are
-    receivers (``self_shadow``) and every mesh keeps its shape: each own vertex's shadowed transfer
-    by rays (and its visibility of the lamps where they are split off), cast once, instead of the
-    field's extrapolation inward (:func:`jshadow.scene.occluder_own_visibility`; the bunny's
-    vertices under a sky 9.7 → 0.3 % relative RMSE, BENCHMARKS.md "Self-shadowing by the cast
-    transfer"); a deforming mesh keeps "field" (the cast, 0.4–0.9 s for the bunny at the default
-    grid, would be made every frame). (For a config, :func:`build_scene` asks this only for the
-    default preset without ``[fit]``.)
+    light visibility "images" if the first or second applies, with images of
+    :data:`AUTO_IMAGE_DIRECTIONS` pixels and :data:`AUTO_LIGHT_CAP` directions per sphere light
+    (the bent airplane's largest error 8.0 → 4.0 %, its frame 12 → 17 ms at 32²), else "sh" (the
+    n-band path) with K = 0, 32 × 32 and 4 × 8. Independently of the images,
+    ``self_visibility = "rays"`` where the own vertices are receivers (``self_shadow``) and every
+    mesh keeps its shape: each own vertex's shadowed transfer by rays (and its visibility of the
+    lamps where they are split off), cast once, instead of the field's extrapolation inward
+    (:func:`jshadow.scene.occluder_own_visibility`; the bunny's vertices under a sky 9.7 → 0.3 %
+    relative RMSE, BENCHMARKS.md "Self-shadowing by the cast transfer"); a deforming mesh keeps
+    "field" (the cast, 0.4–0.9 s for the bunny at the default grid, would be made every frame).
+    (For a config, :func:`build_scene` asks this only for the default preset without ``[fit]``.)
 
     Why: the n-band path cannot shadow small bright sources within the accuracy targets (exact
     4-band visibility at every receiver still leaves 2.5–19 % relative RMSE on the shipped
@@ -258,14 +265,21 @@ def auto_light_path(
     )
     k = AUTO_ENVIRONMENT_LIGHTS if hdr and static else 0
     if applies and (has_lights or k):
-        return {"light_visibility": "images", "environment_lights": k, "self_visibility": own}
+        return {
+            "light_visibility": "images",
+            "environment_lights": k,
+            "self_visibility": own,
+            "directions": AUTO_IMAGE_DIRECTIONS,
+            "light_cap": AUTO_LIGHT_CAP,
+        }
     return dict(_N_BAND, self_visibility=own)
 
 
 def _light_path(config: Config, occluders: tuple, has_lights: bool) -> dict:
-    """What ``[method] light_visibility``, ``environment_lights`` and ``self_visibility`` = "auto"
-    (the defaults) mean for this config, as those three keys: :func:`auto_light_path` for the
-    default preset without ``[fit]``, else the n-band path ("sh", 0, "field"). An explicit
+    """What ``[method] light_visibility``, ``environment_lights``, ``self_visibility``,
+    ``directions`` and ``light_cap`` = "auto" (the defaults) mean for this config, as those keys
+    (an explicit value of one is kept by :meth:`MethodConfig.to_method`): :func:`auto_light_path`
+    for the default preset without ``[fit]``, else the n-band path ("sh", 0, "field"). An explicit
     ``light_visibility`` is kept, and with "auto" lights gets K = 0 and "field" (what they meant
     before "auto");
     explicit environment lights need the images; an explicit ``self_visibility`` is kept

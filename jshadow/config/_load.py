@@ -204,6 +204,11 @@ _METHOD_KEYS = (
 )
 
 
+def _auto_or(t: _Table, name: str, read):
+    """ "auto" where the key is absent or "auto", else what ``read()`` reads and checks."""
+    return "auto" if t.raw(name, "auto") == "auto" else read()
+
+
 def _method(t: _Table) -> MethodConfig:
     d_range = tuple(t.vector("d_range", 2, [0.2, 8.0], check="positive"))
     if not d_range[0] < d_range[1]:
@@ -215,7 +220,7 @@ def _method(t: _Table) -> MethodConfig:
         preset=preset,
         sh_bands=sh_bands,
         bsv_grid=t.integers("bsv_grid", 2, [12, 20], lo=2),
-        directions=t.integers("directions", 2, [32, 32], lo=2),
+        directions=_auto_or(t, "directions", lambda: t.integers("directions", 2, [32, 32], lo=2)),
         dtype=t.string("dtype", "float32", choices=("float32", "float64")),
         shell=t.number("shell", 1.0 if paper else 1.5, check=">=1"),
         model=t.string("model", "paper" if paper else "sphere", choices=MODELS),
@@ -231,13 +236,11 @@ def _method(t: _Table) -> MethodConfig:
         self_visibility=t.string("self_visibility", "auto", choices=("auto", *SELF_VISIBILITIES)),
         self_visibility_grid=t.integers("self_visibility_grid", 2, [12, 48], lo=2),
         light_visibility=t.string("light_visibility", "auto", choices=("auto", *LIGHT_VISIBILITIES)),
-        light_cap=t.integers("light_cap", 2, [4, 8], lo=1),
+        light_cap=_auto_or(t, "light_cap", lambda: t.integers("light_cap", 2, [4, 8], lo=1)),
         light_images=t.string("light_images", "samples", choices=LIGHT_IMAGES),
         bsv_images=t.string("bsv_images", "auto", choices=("auto", *BSV_IMAGES)),
-        environment_lights=(
-            "auto"
-            if t.raw("environment_lights", "auto") == "auto"
-            else t.integer("environment_lights", 0, lo=0)
+        environment_lights=_auto_or(
+            t, "environment_lights", lambda: t.integer("environment_lights", 0, lo=0)
         ),
         environment_threshold=t.number("environment_threshold", 4.0, check="positive"),
     )

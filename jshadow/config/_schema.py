@@ -84,6 +84,8 @@ _AUTO_FALLBACK = {
     "light_visibility": "sh",
     "environment_lights": 0,
     "self_visibility": "field",
+    "directions": (32, 32),
+    "light_cap": (4, 8),
 }
 
 
@@ -96,7 +98,9 @@ class MethodConfig(eqx.Module):
     preset.
 
     ``sh_bands`` n (n² coefficients, 1..8), ``bsv_grid`` (θ, φ) sample points on the bounding sphere
-    (Zhou et al. 2005 use 12×20), ``directions`` per sample point, ``dtype`` "float32" | "float64",
+    (Zhou et al. 2005 use 12×20), ``directions`` per sample point ("auto", the default: 64 × 64
+    where ``light_visibility = "auto"`` takes the occlusion images, which are that many pixels,
+    else 32 × 32), ``dtype`` "float32" | "float64",
     ``shell`` sampling-shell radius over bounding radius (≥ 1; 1 is the paper), ``model`` "paper" |
     "sphere" (extrapolation model), ``radial_samples`` tabulated distances, ``d_range`` their range in
     shell radii, ``bsv_method`` "auto" | "brute" | "edgescan", ``bsv_center`` "placed" | "box" (a
@@ -106,15 +110,16 @@ class MethodConfig(eqx.Module):
     "ratio" | "product" (see :func:`jshadow.scene.combine`), ``bsv_gradient`` "auto" | "raycast" |
     "image" | "scanline" (visibility in the BSV's vertex derivative, see :class:`jshadow.entities.Method`),
     ``self_visibility`` "auto" | "field" | "rays" | "light_rays" (an occluder's visibility at its
-    own vertices with ``self_shadow``: extrapolated by the field, cast from each vertex, or the
-    field's with rays toward the environment lights; "auto", the default: "light_rays" where
-    ``environment_lights = "auto"`` takes the map's lamps, else "field") and
+    own vertices with ``self_shadow``: extrapolated by the field, each vertex's transfer cast by
+    rays, or the field's with rays toward the environment lights; "auto", the default: "rays" where
+    every mesh keeps its shape, else "field") and
     ``self_visibility_grid`` (θ, φ) ray directions over each vertex's normal hemisphere for "rays",
     ``light_visibility`` "auto" | "sh" | "images" (how mesh occluders shadow sphere lights: the
     field's SH, or rays to the light looked up in the BSV's images; "auto", the default: "images"
     where they apply and a sphere light or a lat-long map is there to shadow, unless ``[fit]`` is
     given, see :func:`jshadow.config.build_scene`), ``light_cap`` (rings, sectors) of those
-    rays per light, ``light_images`` "samples" | "coverage" (the images those rays read),
+    rays per light ("auto", the default: 8 × 16 where ``light_visibility = "auto"`` takes the
+    images, else 4 × 8), ``light_images`` "samples" | "coverage" (the images those rays read),
     ``bsv_images`` "auto" | "samples" | "coverage" (the images a mesh's BSV is projected from; "auto":
     "coverage" where the config's ``[fit]`` fits a mesh's deformation and every mesh allows it, so
     that the fitted loss is continuous in the shape and its gradient exact, else "samples"; see
@@ -128,7 +133,7 @@ class MethodConfig(eqx.Module):
     preset: str = eqx.field(static=True, default="default")
     sh_bands: int = eqx.field(static=True, default=4)
     bsv_grid: tuple[int, int] = eqx.field(static=True, default=(12, 20))
-    directions: tuple[int, int] = eqx.field(static=True, default=(32, 32))
+    directions: tuple[int, int] | str = eqx.field(static=True, default="auto")
     dtype: str = eqx.field(static=True, default="float32")
     shell: float = eqx.field(static=True, default=1.5)
     model: str = eqx.field(static=True, default="sphere")
@@ -142,7 +147,7 @@ class MethodConfig(eqx.Module):
     self_visibility: str = eqx.field(static=True, default="auto")
     self_visibility_grid: tuple[int, int] = eqx.field(static=True, default=(12, 48))
     light_visibility: str = eqx.field(static=True, default="auto")
-    light_cap: tuple[int, int] = eqx.field(static=True, default=(4, 8))
+    light_cap: tuple[int, int] | str = eqx.field(static=True, default="auto")
     light_images: str = eqx.field(static=True, default="samples")
     bsv_images: str = eqx.field(static=True, default="auto")
     environment_lights: int | str = eqx.field(static=True, default="auto")
@@ -160,11 +165,11 @@ class MethodConfig(eqx.Module):
 
     def to_method(self, **decided) -> Method:
         """The :class:`jshadow.entities.Method` these options describe. The options that may be
-        "auto" (``bsv_images``, ``light_visibility``, ``environment_lights``, ``self_visibility``)
-        take the value given for them in ``decided`` — what :func:`jshadow.config.build_scene`
-        decides for a config (:func:`jshadow.config._build._bsv_images`,
-        :func:`~jshadow.config._build._light_path`) — or, without one, the library's default
-        ("samples", "sh", 0, "field")."""
+        "auto" (``bsv_images``, ``light_visibility``, ``environment_lights``, ``self_visibility``,
+        ``directions``, ``light_cap``) take the value given for them in ``decided`` — what
+        :func:`jshadow.config.build_scene` decides for a config
+        (:func:`jshadow.config._build._bsv_images`, :func:`~jshadow.config._build._light_path`) —
+        or, without one, the library's default ("samples", "sh", 0, "field", 32 × 32, 4 × 8)."""
         chosen = {}
         for name, fallback in _AUTO_FALLBACK.items():
             value = getattr(self, name)
@@ -173,7 +178,7 @@ class MethodConfig(eqx.Module):
             return Method(
                 sh_bands=self.sh_bands,
                 bsv_grid=tuple(self.bsv_grid),
-                directions=tuple(self.directions),
+                directions=tuple(chosen["directions"]),
                 dtype=self.dtype,
                 shell=float(self.shell),
                 model=self.model,
@@ -187,7 +192,7 @@ class MethodConfig(eqx.Module):
                 self_visibility=chosen["self_visibility"],
                 self_visibility_grid=tuple(self.self_visibility_grid),
                 light_visibility=chosen["light_visibility"],
-                light_cap=tuple(self.light_cap),
+                light_cap=tuple(chosen["light_cap"]),
                 light_images=self.light_images,
                 bsv_images=chosen["bsv_images"],
                 environment_lights=chosen["environment_lights"],
