@@ -61,6 +61,7 @@ from .scene import (
     occluder_bsv,
     occluder_bsv_and_images,
     occluder_images,
+    occluder_lamp_images,
     occluder_own_light_visibility,
     occluder_own_visibility,
     occluder_visibilities,
@@ -545,10 +546,11 @@ class Renderer:
                 out.append(self._static_images[i])
                 continue
             if i in self._fresh_images:  # made with this frame's BSV
-                out.append(self._fresh_images.pop(i))
+                out.append(occluder_lamp_images(occ, t, self.scene, self._fresh_images.pop(i)))
                 self.image_computations += 1
                 continue
             img = occluder_images(occ, 0.0 if static else t, self.scene, differentiable=False)
+            img = occluder_lamp_images(occ, 0.0 if static else t, self.scene, img)
             self.image_computations += img is not None
             if static:
                 self._static_images[i] = img

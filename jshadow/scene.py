@@ -86,6 +86,8 @@ from .visibility import (
     image_fan_visibility_components,
     image_reach,
     is_closed_manifold,
+    lamp_images,
+    lamp_visibility,
     occlusion_images,
     ray_fan_any_hit,
     ray_sphere_any_hit,
@@ -864,6 +866,35 @@ def occluder_bsv_and_images(occ: MeshOccluder, t, scene: Scene) -> tuple[BSV, Oc
     return _with_center_motion(occ, bsv), _with_center_motion(occ, img)
 
 
+def occluder_lamp_images(occ, t, scene: Scene, img: OcclusionImages | None) -> OcclusionImages | None:
+    """``img`` with the occluder's orthographic images along the environment lights' directions
+    attached (:func:`jshadow.visibility.lamp_images` at ``method.lamp_images`` pixels per side, of
+    its world vertices at time t), where the scene splits its map into lights and asks for them;
+    else ``img`` as it is. Concrete vertices only: traced ones (a deformation or placement being
+    differentiated or traced under ``jit``) keep the shell's images for those lights."""
+    m = scene.method
+    if img is None or img.lamps is not None or m.lamp_images <= 0 or not isinstance(occ, MeshOccluder):
+        return img
+    if not uses_environment_lights(scene):
+        return img
+    v = _concrete(_vertices_at(occ, jnp.asarray(t, occ.unit_vertices.dtype)))
+    faces = _concrete(occ.faces)
+    d = _concrete(scene_lighting(scene).env_lights.directions)
+    if v is None or faces is None or d is None:
+        return img
+    with jax.ensure_compile_time_eval():
+        lamps = lamp_images(v, faces, d, m.lamp_images)
+    return eqx.tree_at(lambda x: x.lamps, img, lamps, is_leaf=lambda x: x is None)
+
+
+def with_lamp_images(scene: Scene, t, images):
+    """:func:`occluder_lamp_images` of every occluder's images (None stays None)."""
+    if images is None:
+        return None
+    pairs = zip(scene.occluders, images, strict=True)
+    return tuple(occluder_lamp_images(o, t, scene, img) for o, img in pairs)
+
+
 def scene_images(scene: Scene, t) -> tuple[OcclusionImages | None, ...] | None:
     """:func:`occluder_images` of every occluder at time t, or None unless :func:`uses_light_images`."""
     if not uses_light_images(scene):
@@ -1049,7 +1080,7 @@ def environment_visible_fraction(
             d = dirs[g * fan : (g + 1) * fan].astype(pts.dtype)  # (fan, 3)
             ax = axes[g].astype(pts.dtype)
 
-            def fan_visibility(pts, *own_rows, d=d, ax=ax):
+            def fan_visibility(pts, *own_rows, d=d, ax=ax, g=g):
                 comps = tuple(d[None, :, c] for c in range(3))  # (1, fan) each: shared by all receivers
                 axis = jnp.broadcast_to(ax, pts.shape)
                 vis = jnp.ones((pts.shape[0], fan), pts.dtype)
@@ -1059,7 +1090,10 @@ def environment_visible_fraction(
                         hit = ray_sphere_any_hit(pts[:, None, :], d[None], c, r)
                         vis = vis * (1.0 - hit.astype(pts.dtype))
                         continue
-                    v = image_fan_visibility_components(img, pts, comps, axis)
+                    if img.lamps is not None:  # the lamps' own orthographic images
+                        v = lamp_visibility(img.lamps, pts, slice(g * fan, (g + 1) * fan))
+                    else:
+                        v = image_fan_visibility_components(img, pts, comps, axis)
                     if own_rows:  # own vertices: their exact rays instead of the lookup
                         own_owner, own_fan = own_rows
                         v = jnp.where((own_owner == i)[:, None], own_fan.astype(v.dtype), v)
@@ -1675,6 +1709,7 @@ def render_at(
         bsvs, images = scene_bsvs_and_images(scene, t, sphere_path)
     elif images is None:
         images = scene_images(scene, t)
+    images = with_lamp_images(scene, t, images)
     points, normals = receivers_at_time(scene, t)
     vis, dist = occluder_visibilities(scene, bsvs, points, own, plane_first=True)
     shared = shared_normal_count(scene.receivers.normals)  # the plane's receivers lead `points`

@@ -7,7 +7,8 @@ Claims tested: for every shipped config but the fit configs, the config as shipp
 to the reference than the paper's method (``experiments/models.py``'s "paper" variant: shell r,
 the paper's f_k, 4 bands, the paper's products), by at least the factor recorded in BENCHMARKS.md
 ("The default against the paper"), and within the issue's 1 % relative RMSE on the configs where
-it was measured to be; never brighter than unoccluded by more than 1 %.
+it was measured to be (all but the animated bunny, whose map stays on the n-band path); never
+brighter than unoccluded by more than 1 %.
 """
 
 import pathlib
@@ -30,10 +31,10 @@ PAPER = models.VARIANTS["paper"]  # the paper's method as experiments/defaults.p
 # config -> (reference case, frame, relative RMSE the default must reach [%], paper / default at least)
 CASES = {
     "sphere.toml": ("sphere", 0, 1.0, 10.0),  # 7.76 / 0.18 %
-    "bunny_studio.toml": ("bunny_studio", 0, 4.5, 5.0),  # 24.55 / 4.03 %
-    "spot_sunset.toml": ("spot_sunset", 0, 1.0, 5.0),  # 7.32 / 0.97 %
-    "airplane_bend.toml": ("airplane_bend_last", 23, 1.0, 5.0),  # 8.97 / 0.97 %
-    "egg_breathing.toml": ("egg_breathing", 0, 1.0, 10.0),  # 14.61 / 0.70 %
+    "bunny_studio.toml": ("bunny_studio", 0, 1.0, 20.0),  # 24.55 / 0.98 % (lamp images, cast transfer)
+    "spot_sunset.toml": ("spot_sunset", 0, 1.0, 5.0),  # 7.32 / 0.95 %
+    "airplane_bend.toml": ("airplane_bend_last", 23, 1.0, 10.0),  # 8.97 / 0.64 %
+    "egg_breathing.toml": ("egg_breathing", 0, 1.0, 20.0),  # 14.61 / 0.67 %
     "bunny_animated.toml": ("bunny_animated_last", 47, 23.5, 1.02),  # 23.74 / 23.09 % (n-band path)
 }
 

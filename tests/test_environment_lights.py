@@ -163,6 +163,51 @@ def test_sun_shadow_matches_brute_force_far_better_than_n_bands():
     assert rel(ours) < 0.33 * rel(n_band)
 
 
+def test_lamp_images_give_the_lights_exact_visibility():
+    """With ``lamp_images`` the K lights are looked up in orthographic images along their
+    directions: the plane's visible fraction of them is that of exact rays toward the K directions
+    up to the pixels at the shadows' edges, closer than the shell images' lookups; a Renderer makes
+    them once for a rigid mesh (its frames equal render's); without the option there are none."""
+    from jshadow.scene import environment_visible_fraction, scene_images, scene_lighting, with_lamp_images
+
+    lamps = dataclasses.replace(SPLIT, environment_lights=32, lamp_images=64)
+    scene = _sun_scene(lamps, n=16)
+    lights = scene_lighting(scene).env_lights
+    pts, nrm = scene.receivers.points, scene.receivers.normals
+    occ = scene.occluders[0]
+    d = lights.directions
+    free = ~np.asarray(
+        ray_fan_any_hit(pts, jnp.broadcast_to(d, (pts.shape[0], *d.shape)), occ.vertices(0.0), occ.faces)
+    )
+    cos = np.maximum(np.asarray(nrm) @ np.asarray(d).T, 0.0)
+    energy = np.asarray(lights.energy, np.float64)
+    exact = ((cos * free) @ energy) / (cos @ energy)
+    assert exact.min() < 0.5  # the sun's shadow falls on the plane
+
+    def fraction(images):
+        return np.asarray(environment_visible_fraction(scene, images, lights, pts, nrm)[0], np.float64)
+
+    images = with_lamp_images(scene, 0.0, scene_images(scene, 0.0))
+    assert images[0].lamps.covered.shape == (32, 64, 64)
+    ours, shell = fraction(images), fraction(scene_images(scene, 0.0))
+    err, err_shell = np.abs(ours - exact), np.abs(shell - exact)
+    print(
+        f"visible fraction against exact rays: lamp images mean {err.mean():.4f} max {err.max():.3f}, "
+        f"shell images mean {err_shell.mean():.4f} max {err_shell.max():.3f}"
+    )
+    assert np.mean(err > 1e-6) < 0.05 and err.mean() < 0.5 * err_shell.mean()
+    plain = _sun_scene(SPLIT)
+    assert with_lamp_images(plain, 0.0, scene_images(plain, 0.0))[0].lamps is None
+    small = _sun_scene(lamps, n=6)
+    r = Renderer(small)
+    a, _ = r.frame(0)
+    b, _ = r.frame(0)
+    assert r.image_computations == 1
+    want = np.asarray(render(small).irradiance)
+    for x in (a, b):  # the second frame is read out of the field's table, with the lamps' offset
+        np.testing.assert_allclose(np.asarray(x.irradiance), want, atol=1e-5 * np.abs(want).max())
+
+
 def test_own_vertices_fall_back_and_the_plane_does_not():
     scene = _sun_scene(SPLIT, n=5, self_shadow=True)
     out = render(scene)

@@ -223,7 +223,7 @@ def test_light_visibility_auto_takes_the_images_where_they_apply(tmp_path):
     their shape, else "field"."""
     from pathlib import Path
 
-    from jshadow.config import build_scene
+    from jshadow.config import AUTO_ENVIRONMENT_LIGHTS, build_scene
 
     hdr = str(Path(__file__).resolve().parents[1] / "assets" / "envmaps" / "studio_small_03_512x256.hdr")
     (tmp_path / "open.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 2\nf 1 3 2\nf 1 2 4\nf 1 4 3\n")
@@ -237,39 +237,41 @@ def test_light_visibility_auto_takes_the_images_where_they_apply(tmp_path):
     }
     studio = {"type": "hdr", "file": hdr, "radiance": [1, 1, 1]}
 
+    K = AUTO_ENVIRONMENT_LIGHTS  # noqa: N806
+
     def chosen(d, own="field"):
         m = build_scene(config_from_dict(d, root=tmp_path)).method
         assert m.self_visibility == own
         return m.light_visibility, m.environment_lights
 
     assert chosen(base) == ("images", 0)
-    assert chosen({**base, "environment": studio}) == ("images", 32)
+    assert chosen({**base, "environment": studio}) == ("images", K)
     # the own vertices among the receivers of meshes that keep their shape: their transfer (and
     # their view of the lamps) by rays, cast once, with or without anything sharp to shadow
     own = {**base["receiver"], "self_shadow": True}
-    assert chosen({**base, "environment": studio, "receiver": own}, "rays") == ("images", 32)
+    assert chosen({**base, "environment": studio, "receiver": own}, "rays") == ("images", K)
     assert chosen({**base, "receiver": own}, "rays") == ("images", 0)
     assert chosen({**base, "light": [], "receiver": own}, "rays") == ("sh", 0)  # a constant sky
     keep = {"self_visibility": "field"}
-    assert chosen({**base, "environment": studio, "receiver": own, "method": keep}) == ("images", 32)
+    assert chosen({**base, "environment": studio, "receiver": own, "method": keep}) == ("images", K)
     keep = {"self_visibility": "light_rays"}
     assert chosen({**base, "environment": studio, "receiver": own, "method": keep}, "light_rays") == (
         "images",
-        32,
+        K,
     )
     bent = [{**egg, "deform": {"type": "bend", "amount": [0.0, 0.5]}}]  # deforming: the field
     assert chosen({**base, "occluder": bent, "receiver": own}) == ("images", 0)
     # the n-band path asked for by name keeps the field (what it meant before "auto")
     assert chosen({**base, "receiver": own, "method": {"light_visibility": "sh"}}) == ("sh", 0)
     assert chosen({**base, "receiver": own, "method": {"preset": "paper"}}) == ("sh", 0)
-    assert chosen({**base, "light": [], "environment": studio}) == ("images", 32)
+    assert chosen({**base, "light": [], "environment": studio}) == ("images", K)
     assert chosen({**base, "light": []}) == ("sh", 0)  # a constant sky: nothing sharp
     # a deforming mesh: the map's lamps stay on the n-band path (looked up every frame otherwise)
     bend = [{**egg, "deform": {"type": "bend", "amount": [0.0, 0.5]}}]
     assert chosen({**base, "occluder": bend, "light": [], "environment": studio}) == ("sh", 0)
     assert chosen({**base, "occluder": bend, "environment": studio}) == ("images", 0)
     steady = [{**egg, "deform": {"type": "bend", "amount": [0.5, 0.5]}}]  # the same shape every frame
-    assert chosen({**base, "occluder": steady, "light": [], "environment": studio}) == ("images", 32)
+    assert chosen({**base, "occluder": steady, "light": [], "environment": studio}) == ("images", K)
     # under jit the amounts are traced: they may differ, so the shape counts as deforming
     traced = config_from_dict({**base, "occluder": steady, "light": [], "environment": studio}, root=tmp_path)
     method = eqx.filter_jit(lambda c: build_scene(c).method)(traced)
@@ -295,6 +297,16 @@ def test_light_visibility_auto_takes_the_images_where_they_apply(tmp_path):
     def sizes(d):
         m = build_scene(config_from_dict(d, root=tmp_path)).method
         return m.directions, m.light_cap
+
+    def lamps(d):
+        return build_scene(config_from_dict(d, root=tmp_path)).method.lamp_images
+
+    # lamp_images "auto": the map's lights in orthographic images where they are split off
+    assert lamps({**base, "environment": studio}) == 128 and lamps(base) == 0
+    assert lamps({**base, "environment": studio, "method": {"lamp_images": 0}}) == 0
+    assert lamps({**base, "environment": studio, "method": {"light_visibility": "sh"}}) == 0
+    with pytest.raises(ConfigError, match="lamp_images"):
+        config_from_dict({**base, "method": {"lamp_images": 4}})
 
     assert sizes(base) == ((64, 64), (8, 16))
     assert sizes({**base, "light": []}) == ((32, 32), (4, 8))  # the n-band path

@@ -200,6 +200,7 @@ _METHOD_KEYS = (
     "light_images",
     "bsv_images",
     "environment_lights",
+    "lamp_images",
     "environment_threshold",
 )
 
@@ -243,6 +244,7 @@ def _method(t: _Table) -> MethodConfig:
             t, "environment_lights", lambda: t.integer("environment_lights", 0, lo=0)
         ),
         environment_threshold=t.number("environment_threshold", 4.0, check="positive"),
+        lamp_images=_auto_or(t, "lamp_images", lambda: t.integer("lamp_images", 0, lo=0)),
     )
     try:
         return MethodConfig(**cfg)

@@ -86,6 +86,7 @@ _AUTO_FALLBACK = {
     "self_visibility": "field",
     "directions": (32, 32),
     "light_cap": (4, 8),
+    "lamp_images": 0,
 }
 
 
@@ -127,7 +128,10 @@ class MethodConfig(eqx.Module):
     ``environment_lights`` "auto" | K (0, or a power of two: the lat-long map's radiance
     above ``environment_threshold`` × its mean split off as K distant lights shadowed through the
     images; :mod:`jshadow.envlights`; "auto", the default: 32 where ``light_visibility = "auto"``
-    takes the images and the environment is a lat-long map, else 0).
+    takes the images and the environment is a lat-long map, else 0), and ``lamp_images`` "auto" |
+    R (0, or ≥ 8: those lights looked up in orthographic R × R images of each mesh along their
+    directions instead of the shell's images, :mod:`jshadow.visibility._lamps`; "auto", the
+    default: 128 where ``environment_lights = "auto"`` takes the lights, else 0).
     """
 
     preset: str = eqx.field(static=True, default="default")
@@ -152,6 +156,7 @@ class MethodConfig(eqx.Module):
     bsv_images: str = eqx.field(static=True, default="auto")
     environment_lights: int | str = eqx.field(static=True, default="auto")
     environment_threshold: float = eqx.field(static=True, default=4.0)
+    lamp_images: int | str = eqx.field(static=True, default="auto")
 
     def __check_init__(self):
         if self.model not in MODELS:
@@ -166,10 +171,10 @@ class MethodConfig(eqx.Module):
     def to_method(self, **decided) -> Method:
         """The :class:`jshadow.entities.Method` these options describe. The options that may be
         "auto" (``bsv_images``, ``light_visibility``, ``environment_lights``, ``self_visibility``,
-        ``directions``, ``light_cap``) take the value given for them in ``decided`` — what
+        ``directions``, ``light_cap``, ``lamp_images``) take the value given for them in ``decided`` — what
         :func:`jshadow.config.build_scene` decides for a config
         (:func:`jshadow.config._build._bsv_images`, :func:`~jshadow.config._build._light_path`) —
-        or, without one, the library's default ("samples", "sh", 0, "field", 32 × 32, 4 × 8)."""
+        or, without one, the library's default ("samples", "sh", 0, "field", 32 × 32, 4 × 8, 0)."""
         chosen = {}
         for name, fallback in _AUTO_FALLBACK.items():
             value = getattr(self, name)
@@ -197,6 +202,7 @@ class MethodConfig(eqx.Module):
                 bsv_images=chosen["bsv_images"],
                 environment_lights=chosen["environment_lights"],
                 environment_threshold=float(self.environment_threshold),
+                lamp_images=chosen["lamp_images"],
             )
         except (ValueError, TypeError) as err:
             raise ConfigError(None, None, str(err)) from None

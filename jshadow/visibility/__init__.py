@@ -15,6 +15,7 @@
 * :mod:`._own`: a mesh's visibility of itself at its own vertices, by rays (self-shadowing).
 * :mod:`._images`: single rays looked up in the BSV's occlusion images (sharp sphere-light shadows).
 * :mod:`._coverage`: those images made continuous along the scan lines, with an exact derivative.
+* :mod:`._lamps`: orthographic coverage images along fixed directions (exact distant-lamp shadows).
 """
 
 from ._bsv import BSV as BSV
@@ -52,6 +53,9 @@ from ._images import image_fan_visibility_components as image_fan_visibility_com
 from ._images import image_ray_visibility as image_ray_visibility
 from ._images import image_reach as image_reach
 from ._images import occlusion_images as occlusion_images
+from ._lamps import LampImages as LampImages
+from ._lamps import lamp_images as lamp_images
+from ._lamps import lamp_visibility as lamp_visibility
 from ._own import vertex_visibility_sh as vertex_visibility_sh
 from ._raycast import ray_fan_any_hit as ray_fan_any_hit
 from ._raycast import ray_sphere_any_hit as ray_sphere_any_hit

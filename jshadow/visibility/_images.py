@@ -66,6 +66,7 @@ from ..geometry import bounding_sphere
 from ._bsv import BSV
 from ._edgescan import always, bsv_and_occlusion_edgescan, edgescan_occlusion, staged
 from ._frames import bsv_grid_angles
+from ._lamps import LampImages
 
 __all__ = [
     "OcclusionImages",
@@ -93,6 +94,9 @@ class OcclusionImages(eqx.Module):
         reads: how lookups read the images (static): "nearest" pixel (the 0/1 samples) or
             "bilinear" between pixel centres (continuous images such as
             :func:`jshadow.visibility.scan_coverage`'s; their derivative is then JAX's own).
+        lamps: None, or the occluder's orthographic images along the environment lights'
+            directions (:class:`jshadow.visibility.LampImages`, ``method.lamp_images``), which
+            :func:`jshadow.scene.environment_visible_fraction` then reads for those lights.
     """
 
     occluded: Bool[Array, "T P Ny Nx"] | Float[Array, "T P Ny Nx"]
@@ -100,6 +104,7 @@ class OcclusionImages(eqx.Module):
     radius: Float[Array, ""]
     shell: float = eqx.field(static=True)
     reads: str = eqx.field(static=True, default="nearest")
+    lamps: LampImages | None = None
 
     def __check_init__(self):
         if self.reads not in ("nearest", "bilinear"):

@@ -1,0 +1,72 @@
+"""Orthographic lamp images (jshadow.visibility._lamps): coverage against orthographic rays, lookups
+against exact rays, the size groups against one window for all, the renderer's use of them."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from conftest import random_dirs
+from test_raycast import _asset
+
+from jshadow.geometry import load_mesh, normalize_to_unit_sphere
+from jshadow.visibility import lamp_images, lamp_visibility, ray_fan_any_hit, ray_triangle_any_hit
+from jshadow.visibility._lamps import stamp_groups
+
+
+@pytest.fixture(scope="module")
+def mesh():
+    m = load_mesh(_asset("bunny_small.obj"), dtype=jnp.float32)
+    return normalize_to_unit_sphere(m.vertices) * 0.7 + jnp.asarray([0.2, 1.0, -0.1]), jnp.asarray(m.faces)
+
+
+def test_coverage_is_the_orthographic_rays_and_the_groups_change_nothing(mesh, rng):
+    v, f = mesh
+    d = jnp.asarray(random_dirs(rng, (6,)), jnp.float32)
+    res = 48
+    img = lamp_images(v, f, d, res)
+    groups = stamp_groups(v, f, res)
+    assert len(groups) >= 2 and sum(len(i) for i, _ in groups) == f.shape[0]
+    whole = lamp_images(v, f, d, res, stamp=res + 1)  # one window as large as the image
+    np.testing.assert_array_equal(np.asarray(img.covered), np.asarray(whole.covered))
+    u = -img.radius + (jnp.arange(res, dtype=jnp.float32) + 0.5) * 2 * img.radius / res
+    for k in range(d.shape[0]):
+        # the line through each pixel centre along d, from behind the bounding sphere
+        p = (
+            img.center
+            + u[None, :, None] * img.e1[k]
+            + u[:, None, None] * img.e2[k]
+            - 2 * img.radius * img.directions[k]
+        )
+        p = p.reshape(-1, 3)
+        hit = np.asarray(ray_triangle_any_hit(p, jnp.broadcast_to(img.directions[k], p.shape), v, f))
+        np.testing.assert_array_equal(np.asarray(img.covered[k]).reshape(-1), hit)
+        assert 0.05 < hit.mean() < 0.8
+
+
+def test_lookups_from_outside_match_exact_rays_but_at_the_silhouette(mesh, rng):
+    """Points outside the bounding sphere: the lookup is the exact any-hit up to rays passing within
+    a pixel of the silhouette; a slice of the lamps gives those lamps' columns."""
+    v, f = mesh
+    d = jnp.asarray(random_dirs(rng, (16,)), jnp.float32)
+    img = lamp_images(v, f, d, 96)
+    p = jnp.asarray(rng.uniform(-2.0, 2.0, (3000, 3)) + np.asarray([0.2, 1.0, -0.1]), jnp.float32)
+    p = p[np.linalg.norm(np.asarray(p - img.center), axis=1) > float(img.radius) * 1.001]
+    vis = np.asarray(lamp_visibility(img, p))
+    exact = ~np.asarray(ray_fan_any_hit(p, jnp.broadcast_to(d, (p.shape[0], *d.shape)), v, f))
+    assert 0.01 < 1 - exact.mean() < 0.5  # some rays are blocked, most are not
+    assert np.mean(vis != exact) < 0.01
+    np.testing.assert_array_equal(np.asarray(lamp_visibility(img, p, slice(4, 12))), vis[:, 4:12])
+    np.testing.assert_array_equal(np.asarray(jax.jit(lamp_visibility)(img, p)), vis)
+
+
+def test_bad_input_is_refused(mesh):
+    v, f = mesh
+    d = jnp.asarray([[0.0, 1.0, 0.0]], jnp.float32)
+    with pytest.raises(ValueError, match="resolution"):
+        lamp_images(v, f, d, 1)
+    with pytest.raises(ValueError, match="directions"):
+        lamp_images(v, f, d[0], 16)
+    with pytest.raises(ValueError, match="stamp"):
+        jax.jit(lambda x: lamp_images(x, f, d, 16).covered)(v)
+    traced = jax.jit(lambda x: lamp_images(x, f, d, 16, stamp=17).covered)(v)
+    np.testing.assert_array_equal(np.asarray(traced), np.asarray(lamp_images(v, f, d, 16).covered))
