@@ -448,16 +448,22 @@ class Renderer:
 
     def _image_split(self, own, images):
         """For a scene whose occluders keep their shape and whose lights go through the occlusion
-        images (their visible fractions made once, :meth:`_fractions`): ``(scene, lighting)``
-        without those lights — no sphere lights, no environment lights —, whose frames the readout
-        can take; the image terms are then a constant offset per receiver
-        (:meth:`_with_image_offset`). None otherwise, or when the own vertices' visibility SH is
-        cast (``self_visibility = "rays"``) or there is no environment (nothing left to read out)."""
-        if images is None or not self._shapes_static or self.scene.environment is None:
+        images (their visible fractions made once, :meth:`_fractions`), or whose own vertices'
+        transfer is cast (``self_visibility = "rays"``, cast once): ``(scene, lighting)`` without
+        those lights — no sphere lights, no environment lights — and with the field's visibility at
+        the own vertices, whose frames the readout can take; what the scene adds to them (the image
+        terms, the cast transfer's difference at the own vertices) does not change from frame to
+        frame and is a constant offset per receiver (:meth:`_with_image_offset`). None otherwise,
+        or when there is no environment (nothing left to read out)."""
+        if not self._shapes_static or self.scene.environment is None:
             return None
-        if own is not None and own[0] is not None:
+        cast = own is not None and own[0] is not None
+        if images is None and not cast:
             return None
-        sh_scene = dataclasses.replace(self.scene, lights=())
+        method = self.scene.method
+        if cast:
+            method = dataclasses.replace(method, self_visibility="field")
+        sh_scene = dataclasses.replace(self.scene, lights=(), method=method)
         sh_lighting = dataclasses.replace(self._lighting, env_lights=None, env_bright_sh=None)
         return sh_scene, sh_lighting
 

@@ -166,6 +166,18 @@ def test_renderer_paths_agree_and_reuse_the_cast_of_a_rigid_mesh():
     assert np.abs(field[25:] - whole[25:]).max() > 0.1
 
 
+def test_a_rigid_mesh_with_rays_is_read_out_with_its_transfer_as_an_offset():
+    """Frames after the first of a scene that does not change are read out of the field's table;
+    what the cast transfer changes at the own vertices is a constant offset (the same numbers)."""
+    scene = _scene(RAYS, _torus(), n=5, n_frames=3)
+    rend = Renderer(scene)
+    frames = [np.asarray(rend.frame(f)[0].irradiance) for f in range(3)]
+    assert rend.readout_frames == 3 and rend.readout_reason is None  # prepared at the first frame
+    whole = np.asarray(render(scene).irradiance)
+    for e in frames:
+        np.testing.assert_allclose(e, whole, rtol=0, atol=1e-5 * np.abs(whole).max())
+
+
 def test_a_deforming_mesh_is_cast_every_frame():
     occ = _torus(Twist(0.0, 1.0, axis="y"), sections=(12, 6))
     rend = Renderer(_scene(RAYS, occ, n=2, n_frames=2))
