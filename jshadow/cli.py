@@ -175,11 +175,13 @@ def cmd_render(args) -> int:
         "self_visibility_computations": renderer.self_visibility_computations,
         "light_image_computations": renderer.image_computations,
         "light_fraction_computations": renderer.fraction_computations,
-        # what [method] light_visibility / environment_lights / self_visibility = "auto" took
-        # (jshadow.config.build_scene)
+        # what the [method] options that may be "auto" took (jshadow.config.build_scene)
         "light_visibility": scene.method.light_visibility,
         "environment_lights": scene.method.environment_lights,
         "self_visibility": scene.method.self_visibility,
+        "directions": list(scene.method.directions),
+        "light_cap": list(scene.method.light_cap),
+        "lamp_images": scene.method.lamp_images,
         "readout_frames": renderer.readout_frames,
         "wall_s_including_pictures": wall,
         "per_frame": frames,

@@ -337,6 +337,8 @@ def test_cli_render_reports_the_images_and_fit_refuses_a_sphere_occluder(tmp_pat
     assert t["light_image_computations"] == 1 and t["bsv_computations"] == 1  # a rigid egg: once
     assert t["light_fraction_computations"] == 1
     assert (t["light_visibility"], t["environment_lights"], t["self_visibility"]) == ("images", 0, "field")
+    # given in [method]: directions and light_cap as set; no lamps to image
+    assert (t["directions"], t["light_cap"], t["lamp_images"]) == ([8, 8], [2, 4], 0)
     assert all("light_images_ms" in f for f in t["per_frame"])
     assert "light images" in capsys.readouterr().out
     fit = tmp_path / "fit.toml"
