@@ -582,6 +582,16 @@ def self_visibility_owners(scene: Scene) -> np.ndarray:
 
 
 _surface_offset = eqx.filter_jit(surface_offset)  # one compiled call (eagerly, many small dispatches)
+
+
+def _concrete_lift(scene: Scene, t) -> float | None:
+    """The scene's :func:`jshadow.entities.surface_offset` at t as a float, or None when it is
+    traced (receivers, occluders or lights being differentiated or traced under ``jit``)."""
+    with jax.ensure_compile_time_eval():
+        lift = _concrete(_surface_offset(scene, t))
+    return None if lift is None else float(lift)
+
+
 _OWN: list = []  # [(key, own visibility)] of concrete poses, most recent last (at most 8)
 
 
@@ -604,10 +614,8 @@ def occluder_own_visibility(occ: MeshOccluder, t, scene: Scene, cache: bool = Tr
     v = _vertices_at(occ, t)
     faces = occ.faces
     grid = tuple(m.self_visibility_grid)
-    v_np, f_np = _concrete(v), _concrete(faces)
-    if cache and v_np is not None and f_np is not None:
-        with jax.ensure_compile_time_eval():
-            lift = float(_surface_offset(scene, t))
+    v_np, f_np, lift = _concrete(v), _concrete(faces), _concrete_lift(scene, t)
+    if cache and v_np is not None and f_np is not None and lift is not None:
         key = (v_np.shape, str(v_np.dtype), v_np.tobytes(), f_np.shape, f_np.tobytes(), m.sh_bands, grid)
         key = (*key, lift)
         hit = [own for k, own in _OWN if k == key]
@@ -643,9 +651,8 @@ def occluder_own_light_visibility(
     v = _vertices_at(occ, t)
     faces = occ.faces
     v_np, f_np, d_np = _concrete(v), _concrete(faces), _concrete(directions)
-    if cache and v_np is not None and f_np is not None and d_np is not None:
-        with jax.ensure_compile_time_eval():
-            lift = float(_surface_offset(scene, t))
+    lift = _concrete_lift(scene, t)
+    if cache and v_np is not None and f_np is not None and d_np is not None and lift is not None:
         key = (v_np.shape, str(v_np.dtype), v_np.tobytes(), f_np.tobytes(), d_np.tobytes(), lift)
         hit = [vis for k, vis in _OWN_LIGHTS if k == key]
         if not hit:

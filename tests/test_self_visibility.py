@@ -23,7 +23,7 @@ from test_scene import SMALL, f32, plane
 import jshadow.geometry
 from jshadow import sh
 from jshadow.config import ConfigError, config_from_dict
-from jshadow.entities import Environment, MeshOccluder, Method, Scene
+from jshadow.entities import Environment, MeshOccluder, Method, Scene, SphereLight
 from jshadow.geometry import Twist, normalize_to_unit_sphere
 from jshadow.reference import reference
 from jshadow.runner import Renderer
@@ -218,6 +218,23 @@ def test_jit_and_radiance_gradient_of_render_with_rays():
     # with respect to anything but the vertices the cast is a constant: E is linear in the radiance
     g = jax.jit(jax.grad(lambda r: jnp.sum(irradiance(r)[:, 0])))(f32(1, 1, 1))
     np.testing.assert_allclose(np.asarray(g), [eager[:, 0].sum(), 0.0, 0.0], rtol=1e-4, atol=1e-3)
+
+
+def test_rays_under_a_traced_light_centre():
+    """The rays' lift depends on the scene's extent, lights included: a traced light centre (jit,
+    grad) casts with a traced lift instead of the cache, and gives the eager numbers."""
+    occ = _torus(sections=(12, 6))
+
+    def total(c):
+        light = SphereLight(c, jnp.float32(0.3), f32(5, 5, 5))
+        scene = Scene(RAYS, plane(n=2), (occ,), (light,), Environment(f32(1, 1, 1)), self_shadow=True)
+        return jnp.sum(render(scene).irradiance)
+
+    c = f32(0.5, 3.0, 0.2)
+    eager = float(total(c))
+    np.testing.assert_allclose(float(jax.jit(total)(c)), eager, rtol=1e-4)
+    g = np.asarray(jax.grad(total)(c))
+    assert np.all(np.isfinite(g)) and np.abs(g).max() > 0
 
 
 def test_config_reads_and_checks_self_visibility():
