@@ -341,10 +341,12 @@ def build_scene(config: Config) -> Scene:
     * ``n_frames`` = ``[animation] frames``; ``self_shadow`` from ``[receiver]``.
     * ``[method] bsv_images = "auto"`` (the default) is "coverage" where ``[fit]`` fits a mesh's
       deformation and the coverage BSV applies, else "samples" (:func:`_bsv_images`).
-    * ``[method] light_visibility``, ``environment_lights`` and ``self_visibility`` = "auto" (the
-      defaults) shadow sphere lights, and the lamps of a lat-long map over meshes that keep their
-      shape (32 distant lights; the own vertices' by rays), through the occlusion images where they
-      apply and no ``[fit]`` is given, else through the n-band path (:func:`_light_path`).
+    * ``[method] light_visibility``, ``environment_lights``, ``self_visibility``, ``directions``,
+      ``light_cap`` and ``lamp_images`` = "auto" (the defaults) shadow sphere lights through the
+      occlusion images, and the lamps of a lat-long map over meshes that keep their shape through
+      orthographic lamp images (128 distant lights), where they apply and no ``[fit]`` is given,
+      else through the n-band path; the own vertices of meshes that keep their shape get their
+      transfer cast by rays (:func:`auto_light_path`, :func:`_light_path`).
 
     Traceable and differentiable in every float leaf of ``config`` (``eqx.tree_at`` + ``jax.jvp``).
     Raises :class:`ConfigError` naming the key when a mesh or map cannot be read.
