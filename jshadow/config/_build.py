@@ -254,8 +254,9 @@ def auto_light_path(
     mesh keeps its shape: each own vertex's shadowed transfer by rays (and its visibility of the
     lamps where they are split off), cast once, instead of the field's extrapolation inward
     (:func:`jshadow.scene.occluder_own_visibility`; the bunny's vertices under a sky 9.7 → 0.3 %
-    relative RMSE, BENCHMARKS.md "Self-shadowing by the cast transfer"); a deforming mesh keeps
-    "field" (the cast, 0.4–0.9 s for the bunny at the default grid, would be made every frame).
+    relative RMSE, BENCHMARKS.md "The default against the paper, every scene in one run"); a
+    deforming mesh keeps "field" (the cast, 0.6–1.0 s for the bunny at the default 12 × 48 grid,
+    would be made every frame).
     (For a config, :func:`build_scene` asks this only for the default preset without ``[fit]``.)
 
     Why: the n-band path cannot shadow small bright sources within the accuracy targets (exact
