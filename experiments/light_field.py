@@ -108,9 +108,34 @@ def _airplane_studio_twist(method: dict, res: int):
     return models._scene(method, [models._mesh("airplane.obj", (0, 1.1, 0), 0.9, twist)], env=env, res=res)
 
 
+def _airplane_studio_bend(method: dict, res: int):
+    """Untuned for a deforming mesh under a map: the airplane bending over its animation (bend
+    0 → 0.6 about y toward x), its last frame, under the studio map turned by 2 rad (64 lamps in
+    images made every frame by default)."""
+    path = models.ASSETS / "envmaps" / "studio_small_03_512x256.hdr"
+    image = rotate_latlong_y(jnp.asarray(read_latlong(path), jnp.float32), 2.0)
+    env = Environment(radiance=jnp.ones(3, jnp.float32), image=image, kind="hdr")
+    bend = make_deformation("bend", (0.0, 0.6), axis="y", toward="x")
+    occ = [models._mesh("airplane.obj", (0, 1.1, 0), 0.9, bend)]
+    return models._scene(method, occ, env=env, res=res, n_frames=2)
+
+
+def _spot_self_sky_bend(method: dict, res: int):
+    """Untuned for a deforming mesh's self-shadowing: the spot cow bending over its animation (bend
+    0 → 0.7 about y toward z), its last frame, under a sky, its 2930 own vertices among the
+    receivers ("maps" by default: depth images and local rays made every frame)."""
+    bend = make_deformation("bend", (0.0, 0.7), axis="y", toward="z")
+    occ = [models._mesh("spot.obj", (0.1, 0.9, 0.0), 0.7, bend)]
+    return models._scene(
+        method, occ, env=models._sky("sky", (0.6, 0.7, 0.9)), res=res, n_frames=2, self_shadow=True
+    )
+
+
 def _cases():
     cases = dict(models._cases())
     cases["airplane_studio_twist"] = (_airplane_studio_twist, 0, "analytic", False)
+    cases["airplane_studio_bend_last"] = (_airplane_studio_bend, 1, "analytic", False)
+    cases["spot_self_sky_bend_last"] = (_spot_self_sky_bend, 1, "analytic", False)
     return cases
 
 

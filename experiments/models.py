@@ -66,6 +66,7 @@ from jshadow.config._build import plane_receivers  # noqa: E402
 from jshadow.entities import Environment, MeshOccluder, Method, Scene, SphereLight, SphereOccluder  # noqa: E402
 from jshadow.geometry import egg, load_mesh, make_deformation, normalize_to_unit_sphere  # noqa: E402
 from jshadow.runner import Renderer  # noqa: E402
+from jshadow.scene import clear_pose_caches  # noqa: E402
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 CONFIGS = ROOT / "configs"
@@ -313,11 +314,17 @@ def reference(name, scene, frame, target, max_spp, seed=0):
 # ---- measurement -----------------------------------------------------------------------------------
 
 
+def _fresh_frame(scene, frame, sphere_path):
+    """A fresh renderer's frame, nothing kept from an earlier one of the same pose."""
+    clear_pose_caches()
+    return Renderer(scene, sphere_path).frame(frame)
+
+
 def timed(scene, frame, sphere_path, runs=3):
     t0 = time.perf_counter()
-    res, _ = Renderer(scene, sphere_path).frame(frame)
+    res, _ = _fresh_frame(scene, frame, sphere_path)
     first = 1e3 * (time.perf_counter() - t0)
-    ms = [Renderer(scene, sphere_path).frame(frame)[1]["total_ms"] for _ in range(runs)]
+    ms = [_fresh_frame(scene, frame, sphere_path)[1]["total_ms"] for _ in range(runs)]
     return np.asarray(res.irradiance, np.float64), first, float(np.median(ms))
 
 

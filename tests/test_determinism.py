@@ -107,11 +107,12 @@ def _check_flat_call(rend, config_file, res):
     scene = rend.scene
     t = jnp.asarray(frame_time(1, scene.n_frames), scene.receivers.points.dtype)
     bsvs = rend._bsvs(t)
+    own = rend._own(t)  # the bending egg's own vertices: "maps" (self_visibility "auto")
     images = rend._images(t)  # the sphere light is shadowed through the images (light_visibility "auto")
-    assert images is not None
+    assert images is not None and own is not None
     ref = runner._with_receivers(
         scene,
-        runner._place_and_shade(scene, bsvs, t, rend._lighting, True, rend._shared_normal, None, images),
+        runner._place_and_shade(scene, bsvs, t, rend._lighting, True, rend._shared_normal, own, images),
     )
     _assert_identical(_arrays(res, KEYS), dict(zip(KEYS, (np.asarray(x) for x in ref), strict=True)), KEYS)
     again = Renderer(jshadow.build_scene(jshadow.load_config(config_file)))
@@ -137,12 +138,13 @@ def test_one_call_shading_equals_the_split_stages(config_file):
         _assert_identical(a, b, ("points", "normals"))
         for k in ("irradiance", "radiance"):
             np.testing.assert_allclose(a[k], b[k], rtol=0, atol=tol * np.abs(b[k]).max())
-        stages = {"bsv_ms", "light_images_ms", "shading_ms", "total_ms"}
+        # the own vertices' maps made for the frame ("self_visibility_ms"), the images, the shading
+        stages = {"bsv_ms", "self_visibility_ms", "light_images_ms", "shading_ms", "total_ms"}
         assert set(t_one) == stages
         assert set(t_split) == stages | {"field_ms", "combine_ms"}
         assert t_split["shading_ms"] == pytest.approx(t_split["field_ms"] + t_split["combine_ms"])
         for t in (t_one, t_split):
-            stages = t["bsv_ms"] + t["light_images_ms"] + t["shading_ms"]
+            stages = t["bsv_ms"] + t["self_visibility_ms"] + t["light_images_ms"] + t["shading_ms"]
             assert t["total_ms"] == pytest.approx(stages) and t["shading_ms"] > 0
     with pytest.raises(TypeError, match="split_stages"):
         Renderer(scene, split_stages="yes")

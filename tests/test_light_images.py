@@ -223,7 +223,7 @@ def test_light_visibility_auto_takes_the_images_where_they_apply(tmp_path):
     their shape, else "field"."""
     from pathlib import Path
 
-    from jshadow.config import AUTO_ENVIRONMENT_LIGHTS, build_scene
+    from jshadow.config import AUTO_ENVIRONMENT_LIGHTS, AUTO_ENVIRONMENT_LIGHTS_DEFORMING, build_scene
 
     hdr = str(Path(__file__).resolve().parents[1] / "assets" / "envmaps" / "studio_small_03_512x256.hdr")
     (tmp_path / "open.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 2\nf 1 3 2\nf 1 2 4\nf 1 4 3\n")
@@ -238,6 +238,7 @@ def test_light_visibility_auto_takes_the_images_where_they_apply(tmp_path):
     studio = {"type": "hdr", "file": hdr, "radiance": [1, 1, 1]}
 
     K = AUTO_ENVIRONMENT_LIGHTS  # noqa: N806
+    KD = AUTO_ENVIRONMENT_LIGHTS_DEFORMING  # noqa: N806
 
     def chosen(d, own="field"):
         m = build_scene(config_from_dict(d, root=tmp_path)).method
@@ -259,23 +260,29 @@ def test_light_visibility_auto_takes_the_images_where_they_apply(tmp_path):
         "images",
         K,
     )
-    bent = [{**egg, "deform": {"type": "bend", "amount": [0.0, 0.5]}}]  # deforming: the field
-    assert chosen({**base, "occluder": bent, "receiver": own}) == ("images", 0)
+    # a closed mesh that deforms: both from depth images and local rays, made every frame
+    bent = [{**egg, "deform": {"type": "bend", "amount": [0.0, 0.5]}}]
+    assert chosen({**base, "occluder": bent, "receiver": own}, "maps") == ("images", 0)
+    assert chosen({**base, "occluder": bent, "receiver": own, "environment": studio}, "maps") == (
+        "images",
+        KD,
+    )
+    assert chosen({**base, "occluder": bent, "receiver": own, "light": []}, "maps") == ("sh", 0)
     # the n-band path asked for by name keeps the field (what it meant before "auto")
     assert chosen({**base, "receiver": own, "method": {"light_visibility": "sh"}}) == ("sh", 0)
     assert chosen({**base, "receiver": own, "method": {"preset": "paper"}}) == ("sh", 0)
     assert chosen({**base, "light": [], "environment": studio}) == ("images", K)
     assert chosen({**base, "light": []}) == ("sh", 0)  # a constant sky: nothing sharp
-    # a deforming mesh: the map's lamps stay on the n-band path (looked up every frame otherwise)
+    # a deforming mesh: fewer lamps, their images made every frame
     bend = [{**egg, "deform": {"type": "bend", "amount": [0.0, 0.5]}}]
-    assert chosen({**base, "occluder": bend, "light": [], "environment": studio}) == ("sh", 0)
-    assert chosen({**base, "occluder": bend, "environment": studio}) == ("images", 0)
+    assert chosen({**base, "occluder": bend, "light": [], "environment": studio}) == ("images", KD)
+    assert chosen({**base, "occluder": bend, "environment": studio}) == ("images", KD)
     steady = [{**egg, "deform": {"type": "bend", "amount": [0.5, 0.5]}}]  # the same shape every frame
     assert chosen({**base, "occluder": steady, "light": [], "environment": studio}) == ("images", K)
     # under jit the amounts are traced: they may differ, so the shape counts as deforming
     traced = config_from_dict({**base, "occluder": steady, "light": [], "environment": studio}, root=tmp_path)
     method = eqx.filter_jit(lambda c: build_scene(c).method)(traced)
-    assert (method.light_visibility, method.environment_lights) == ("sh", 0)
+    assert (method.light_visibility, method.environment_lights) == ("images", KD)
     fit = {"params": ["light.0.center"], "target_values": [[0.0, 3.0, 0.0]]}
     assert chosen({**base, "environment": studio, "fit": fit}) == ("sh", 0)
     assert chosen({**base, "method": {"preset": "paper"}}) == ("sh", 0)
@@ -310,6 +317,8 @@ def test_light_visibility_auto_takes_the_images_where_they_apply(tmp_path):
 
     assert sizes(base) == ((64, 64), (8, 16))
     assert sizes({**base, "light": []}) == ((32, 32), (4, 8))  # the n-band path
+    # a map's lamps have their own images: the shell's stay as the n-band path's
+    assert sizes({**base, "light": [], "environment": studio}) == ((32, 32), (4, 8))
     assert sizes({**base, "method": {"preset": "paper"}}) == ((32, 32), (4, 8))
     assert sizes({**base, "method": {"light_visibility": "images"}}) == ((32, 32), (4, 8))
     assert sizes({**base, "method": {"directions": [16, 16], "light_cap": "auto"}}) == ((16, 16), (8, 16))

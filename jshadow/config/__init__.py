@@ -8,6 +8,7 @@ the config's numbers. ``get_param``/``set_param`` address those numbers by dotte
 """
 
 from ._build import AUTO_ENVIRONMENT_LIGHTS as AUTO_ENVIRONMENT_LIGHTS
+from ._build import AUTO_ENVIRONMENT_LIGHTS_DEFORMING as AUTO_ENVIRONMENT_LIGHTS_DEFORMING
 from ._build import auto_light_path as auto_light_path
 from ._build import build_scene as build_scene
 from ._build import clear_file_cache as clear_file_cache

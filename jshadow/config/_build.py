@@ -207,6 +207,10 @@ def _bsv_images(config: Config, occluders: tuple) -> str:
 
 
 AUTO_ENVIRONMENT_LIGHTS = 128  # what environment_lights = "auto" takes for a lat-long map
+# ... over a mesh that deforms, whose lamp images are made every frame (the animated bunny: 1.23 %
+# relative RMSE with 64, 1.26 % with 128, at 1.45x and 1.88x the paper's frame; BENCHMARKS.md
+# "Self-shadowing by depth images")
+AUTO_ENVIRONMENT_LIGHTS_DEFORMING = 64
 # the n-band light path: what the light options' "auto" falls back to (MethodConfig.to_method's too)
 _LIGHT_KEYS = (
     "light_visibility",
@@ -233,30 +237,30 @@ def auto_light_path(
     ``light_cap`` and ``lamp_images``. Where the occlusion images apply (shell > 1 and
     ``bsv_method`` not "brute", at least one mesh occluder and every mesh closed):
 
-    * a lat-long map (``hdr``) over meshes that keep their shape
-      (:func:`jshadow.entities.shape_is_static`) has its bright part split off as
-      K = :data:`AUTO_ENVIRONMENT_LIGHTS` distant lights, each looked up in orthographic images
-      of every mesh along its direction, :data:`AUTO_LAMP_IMAGES` pixels wide, made once per
-      shape (the untuned twisted airplane under the studio map 2.84 → 0.53 % relative RMSE,
-      BENCHMARKS.md "Lamp images"; the visible fractions are then made once too,
-      :class:`jshadow.Renderer`); over a deforming mesh the map stays on the n-band path (K = 0:
-      32 directions looked up every frame in the shell's images added 11.3–22.7 ms to the
-      animated bunny's 4.5–6.4 ms frame in three runs of ``bench_light_images.py``, and its own
-      vertices' lamp rays, about 140 ms per cast at 32 lamps, would be cast every frame;
-      BENCHMARKS.md "The default against the paper, every scene in one run");
-    * sphere lights (``has_lights``) are shadowed through the images;
+    * a lat-long map (``hdr``) has its bright part split off as K distant lights, each looked up
+      in orthographic images of every mesh along its direction, :data:`AUTO_LAMP_IMAGES` pixels
+      wide: K = :data:`AUTO_ENVIRONMENT_LIGHTS` over meshes that keep their shape
+      (:func:`jshadow.entities.shape_is_static`; images made once per shape, and the visible
+      fractions too, :class:`jshadow.Renderer`; the untuned twisted airplane under the studio map
+      2.84 → 0.53 % relative RMSE, BENCHMARKS.md "Lamp images"), K =
+      :data:`AUTO_ENVIRONMENT_LIGHTS_DEFORMING` over a mesh that deforms, whose images are made
+      every frame (the animated bunny 23.1 → 1.1 % with its vertices' "maps" below, at 1.34× the
+      paper's frame; BENCHMARKS.md "Self-shadowing by depth images");
+    * sphere lights (``has_lights``) are shadowed through the shell's images;
 
-    light visibility "images" if the first or second applies, with images of
+    light visibility "images" if the first or second applies, with shell images of
     :data:`AUTO_IMAGE_DIRECTIONS` pixels and :data:`AUTO_LIGHT_CAP` directions per sphere light
-    (the bent airplane's largest error 8.0 → 4.0 %, its frame 12 → 17 ms at 32²), else "sh" (the
-    n-band path) with K = 0, 32 × 32 and 4 × 8. Independently of the images,
-    ``self_visibility = "rays"`` where the own vertices are receivers (``self_shadow``) and every
-    mesh keeps its shape: each own vertex's shadowed transfer by rays (and its visibility of the
-    lamps where they are split off), cast once, instead of the field's extrapolation inward
-    (:func:`jshadow.scene.occluder_own_visibility`; the bunny's vertices under a sky 9.7 → 0.3 %
-    relative RMSE, BENCHMARKS.md "The default against the paper, every scene in one run"); a
-    deforming mesh keeps "field" (the cast, 0.6–1.0 s for the bunny at the default 12 × 48 grid,
-    would be made every frame).
+    where there are sphere lights (the bent airplane's largest error 8.0 → 4.0 %, its frame 12 →
+    17 ms at 32²), else 32 × 32 and 4 × 8; otherwise "sh" (the n-band path) with K = 0.
+    Independently of the images, where the own vertices are receivers (``self_shadow``):
+    ``self_visibility = "rays"`` if every mesh keeps its shape: each own vertex's shadowed
+    transfer by rays (and its visibility of the lamps where they are split off), cast once,
+    instead of the field's extrapolation inward (:func:`jshadow.scene.occluder_own_visibility`;
+    the bunny's vertices under a sky 9.7 → 0.3 % relative RMSE, BENCHMARKS.md "The default
+    against the paper, every scene in one run"); "maps" for closed meshes that deform: the same
+    two quantities from depth images and rays against each vertex's nearby faces, made every
+    frame (about 5× cheaper than the cast and less accurate: the bunny's vertices under a sky
+    1.8 % against 0.3 %; :mod:`jshadow.visibility._own_maps`); else "field".
     (For a config, :func:`build_scene` asks this only for the default preset without ``[fit]``.)
 
     Why: the n-band path cannot shadow small bright sources within the accuracy targets (exact
@@ -269,21 +273,24 @@ def auto_light_path(
 
     meshes = [o for o in occluders if isinstance(o, MeshOccluder)]
     static = bool(meshes) and all(shape_is_static(o) for o in meshes)
-    own = "rays" if self_shadow and static else "field"
-    applies = (
-        shell > 1.0
-        and bsv_method != "brute"
-        and bool(meshes)
-        and all(mesh_is_closed_manifold(np.asarray(o.faces)) for o in meshes)  # faces are concrete
-    )
-    k = AUTO_ENVIRONMENT_LIGHTS if hdr and static else 0
+    closed = bool(meshes) and all(mesh_is_closed_manifold(np.asarray(o.faces)) for o in meshes)
+    own = "field"
+    if self_shadow and static:
+        own = "rays"
+    elif self_shadow and closed:
+        own = "maps"
+    applies = shell > 1.0 and bsv_method != "brute" and closed  # faces are concrete
+    k = 0
+    if hdr and bool(meshes):
+        k = AUTO_ENVIRONMENT_LIGHTS if static else AUTO_ENVIRONMENT_LIGHTS_DEFORMING
     if applies and (has_lights or k):
         return {
             "light_visibility": "images",
             "environment_lights": k,
             "self_visibility": own,
-            "directions": AUTO_IMAGE_DIRECTIONS,
-            "light_cap": AUTO_LIGHT_CAP,
+            # the shell's images are read for sphere lights only (a map's lamps have their own)
+            "directions": AUTO_IMAGE_DIRECTIONS if has_lights else _N_BAND["directions"],
+            "light_cap": AUTO_LIGHT_CAP if has_lights else _N_BAND["light_cap"],
             "lamp_images": AUTO_LAMP_IMAGES if k else 0,
         }
     return dict(_N_BAND, self_visibility=own)

@@ -110,10 +110,11 @@ class MethodConfig(eqx.Module):
     M_k (≥ ``sh_bands``; default ``sh_bands`` + 1, or ``sh_bands`` for the paper), ``shading``
     "ratio" | "product" (see :func:`jshadow.scene.combine`), ``bsv_gradient`` "auto" | "raycast" |
     "image" | "scanline" (visibility in the BSV's vertex derivative, see :class:`jshadow.entities.Method`),
-    ``self_visibility`` "auto" | "field" | "rays" | "light_rays" (an occluder's visibility at its
-    own vertices with ``self_shadow``: extrapolated by the field, each vertex's transfer cast by
-    rays, or the field's with rays toward the environment lights; "auto", the default: "rays" where
-    every mesh keeps its shape, else "field") and
+    ``self_visibility`` "auto" | "field" | "rays" | "light_rays" | "maps" (an occluder's
+    visibility at its own vertices with ``self_shadow``: extrapolated by the field, each vertex's
+    transfer cast by rays, the field's with rays toward the environment lights, or "rays"'
+    quantities from depth images and rays against nearby faces; "auto", the default: "rays" where
+    every mesh keeps its shape, else "maps" for closed meshes, else "field") and
     ``self_visibility_grid`` (θ, φ) ray directions over each vertex's normal hemisphere for "rays",
     ``light_visibility`` "auto" | "sh" | "images" (how mesh occluders shadow sphere lights: the
     field's SH, or rays to the light looked up in the BSV's images; "auto", the default: "images"

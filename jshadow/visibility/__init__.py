@@ -13,9 +13,11 @@
 * :mod:`._edgescan_scan`: the same derivative as a sum over the edge-scan's pixel columns and rows,
   with the exact layer count at every crossing (faster on large meshes, noisier per vertex).
 * :mod:`._own`: a mesh's visibility of itself at its own vertices, by rays (self-shadowing).
+* :mod:`._own_maps`: the same from entry-face depth images and rays against nearby faces only.
 * :mod:`._images`: single rays looked up in the BSV's occlusion images (sharp sphere-light shadows).
 * :mod:`._coverage`: those images made continuous along the scan lines, with an exact derivative.
-* :mod:`._lamps`: orthographic coverage images along fixed directions (exact distant-lamp shadows).
+* :mod:`._lamps`: orthographic coverage and depth images along fixed directions (exact distant-lamp
+  shadows).
 """
 
 from ._bsv import BSV as BSV
@@ -57,6 +59,10 @@ from ._lamps import LampImages as LampImages
 from ._lamps import lamp_images as lamp_images
 from ._lamps import lamp_visibility as lamp_visibility
 from ._own import vertex_visibility_sh as vertex_visibility_sh
+from ._own_maps import near_any_hit as near_any_hit
+from ._own_maps import ring_faces as ring_faces
+from ._own_maps import vertex_lamp_visibility as vertex_lamp_visibility
+from ._own_maps import vertex_transfer_maps as vertex_transfer_maps
 from ._raycast import ray_fan_any_hit as ray_fan_any_hit
 from ._raycast import ray_sphere_any_hit as ray_sphere_any_hit
 from ._raycast import ray_triangle_any_hit as ray_triangle_any_hit
