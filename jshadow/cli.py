@@ -196,7 +196,8 @@ def cmd_render(args) -> int:
         )
     m = summary["median_ms"]
     split = f" = field {m['field_ms']:.1f} + combine {m['combine_ms']:.1f}" if "field_ms" in m else ""
-    own = f", own-vertex rays {m['self_visibility_ms']:.1f}" if "self_visibility_ms" in m else ""
+    cast = "maps" if scene.method.self_visibility == "maps" else "rays"  # how the own vertices are cast
+    own = f", own-vertex {cast} {m['self_visibility_ms']:.1f}" if "self_visibility_ms" in m else ""
     own += f", light images {m['light_images_ms']:.1f}" if "light_images_ms" in m else ""
     print(
         f"rendered {len(frames)} frame(s), {summary['receivers']} receivers -> {out}  "
