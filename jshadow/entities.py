@@ -177,10 +177,10 @@ class Method:
     coverage images of each mesh occluder along their directions, R × R pixels over its bounding
     sphere (:mod:`jshadow.visibility._lamps`), instead of in the BSV shell's images: exact up to
     the pixel for receivers outside the occluder, without the parallax between shell points. They
-    are a per-shape cost (K·F small rasterisations: the bunny's 128 take 0.10 s at 64², 0.23 s at
-    128²), made once
-    for a mesh that keeps its shape and every frame for one that deforms; receivers inside a
-    bounding sphere keep their own-vertex rays or the n-band fallback. 0 (default): the shell's.
+    are a per-shape cost (K·F small rasterisations: the bunny's 128 at 128² take 94–109 ms, of a
+    closed mesh's entry faces 74–81 ms), made once for a mesh that keeps its shape and every frame
+    for one that deforms; an occluder's own vertices keep their rays or "maps" (which read the
+    same images' depth), else the n-band fallback. 0 (default): the shell's.
     """
 
     sh_bands: int = 4  # n: n² coefficients
