@@ -120,7 +120,7 @@ class Method:
     (:mod:`jshadow.visibility._own_maps`: the transfer over an 8 × 16 sphere grid at 64² pixels,
     the lamps at ``lamp_images`` pixels, 128 if 0), for a mesh that deforms: the animated bunny's
     vertices under the studio map 1.26 % relative RMSE with "rays" (1.4 s per frame), 1.40 % with
-    "maps" (about 0.12 s), the bunny's under a sky 0.34 against 1.77 % (BENCHMARKS.md
+    "maps" (0.12–0.14 s with the lamp images), the bunny's under a sky 0.34 against 1.77 % (BENCHMARKS.md
     "Self-shadowing by depth images"); closed meshes, concrete poses (a traced pose is cast by
     rays).
 

@@ -208,8 +208,9 @@ def _bsv_images(config: Config, occluders: tuple) -> str:
 
 AUTO_ENVIRONMENT_LIGHTS = 128  # what environment_lights = "auto" takes for a lat-long map
 # ... over a mesh that deforms, whose lamp images are made every frame (the animated bunny: 1.23 %
-# relative RMSE with 64, 1.26 % with 128, at 1.45x and 1.88x the paper's frame; BENCHMARKS.md
-# "Self-shadowing by depth images")
+# relative RMSE with 64, 1.26 % with 128, at 1.45x and 1.88x the paper's frame in one run of
+# distinct frames at its 160² plane, margins of 2 pixels then; BENCHMARKS.md "Self-shadowing by
+# depth images")
 AUTO_ENVIRONMENT_LIGHTS_DEFORMING = 64
 # the n-band light path: what the light options' "auto" falls back to (MethodConfig.to_method's too)
 _LIGHT_KEYS = (
@@ -244,7 +245,7 @@ def auto_light_path(
       fractions too, :class:`jshadow.Renderer`; the untuned twisted airplane under the studio map
       2.84 → 0.53 % relative RMSE, BENCHMARKS.md "Lamp images"), K =
       :data:`AUTO_ENVIRONMENT_LIGHTS_DEFORMING` over a mesh that deforms, whose images are made
-      every frame (the animated bunny 23.1 → 1.1 % with its vertices' "maps" below, at 1.34× the
+      every frame (the animated bunny 23.1 → 1.1 % with its vertices' "maps" below, at 1.34–1.39× the
       paper's frame; BENCHMARKS.md "Self-shadowing by depth images");
     * sphere lights (``has_lights``) are shadowed through the shell's images;
 

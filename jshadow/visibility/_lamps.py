@@ -138,14 +138,13 @@ def _rasterise(vertices, faces, directions, orientation, order=None, *, resoluti
     offs = jnp.arange(stamp, dtype=jnp.int32)
     size = resolution + stamp  # windows start in [0, R] (pixel coordinates lie in [−½, R − ½])
 
+    per_direction = (px, py, pz, enters)
     if order is not None:  # (K, cap): the faces each direction rasterises (its entry faces first)
-        enters = jnp.take_along_axis(enters, order, axis=1)
-    else:
-        order = jnp.broadcast_to(jnp.arange(faces.shape[0], dtype=jnp.int32), enters.shape)
+        per_direction = (px, py, pz, jnp.take_along_axis(enters, order, axis=1), order)
 
     def one(args):
-        x, y, z, ent, sel = args  # (V,) pixel coordinates and depths along this direction; (F,) entry
-        faces_k = faces[sel]
+        x, y, z, ent = args[:4]  # (V,) pixel coordinates and depths along this direction; (F,) entry
+        faces_k = faces if len(args) == 4 else faces[args[4]]
         ax, ay, az = x[faces_k[:, 0]], y[faces_k[:, 0]], z[faces_k[:, 0]]
         bx, by, bz = x[faces_k[:, 1]], y[faces_k[:, 1]], z[faces_k[:, 1]]
         cx, cy, cz = x[faces_k[:, 2]], y[faces_k[:, 2]], z[faces_k[:, 2]]
@@ -175,7 +174,7 @@ def _rasterise(vertices, faces, directions, orientation, order=None, *, resoluti
         img = jax.lax.scatter_max(img, jnp.stack([i0, j0], -1), vals, _WINDOW, mode="promise_in_bounds")
         return img[:resolution, :resolution]
 
-    front = jax.lax.map(one, (px, py, pz, enters, order))
+    front = jax.lax.map(one, per_direction)
     return LampImages(front, d, e1, e2, center, radius, entry_only)
 
 
