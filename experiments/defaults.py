@@ -78,6 +78,7 @@ CASES = [
     # untuned, deforming: a map's lamps in images made every frame, a mesh's own vertices by "maps"
     "airplane_studio_bend_last",
     "spot_self_sky_bend_last",
+    "bunny_self_sky_bend_last",
 ]
 SETTINGS = ("paper", "n-band", "default")
 N_BAND = ("sh", 0, "field")  # light_visibility, environment_lights, self_visibility of the n-band path
@@ -104,7 +105,10 @@ def auto_keys(scene) -> dict:
     ``light_cap``."""
     m = scene.method
     hdr = scene.environment is not None and scene.environment.kind == "hdr"
-    return auto_light_path(scene.occluders, bool(scene.lights), hdr, scene.self_shadow, m.shell, m.bsv_method)
+    env = scene.environment is not None
+    return auto_light_path(
+        scene.occluders, bool(scene.lights), hdr, scene.self_shadow, m.shell, m.bsv_method, environment=env
+    )
 
 
 def main() -> None:

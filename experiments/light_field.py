@@ -131,11 +131,21 @@ def _spot_self_sky_bend(method: dict, res: int):
     )
 
 
+def _bunny_self_sky_bend(method: dict, res: int):
+    """Untuned for the own vertices' transfer grid: the bunny bending over its animation (bend
+    0 → 0.6 about y toward x), its last frame, under a constant sky, its 1901 own vertices among
+    the receivers ("maps" by default; the sky carries all the light through their transfer)."""
+    bend = make_deformation("bend", (0.0, 0.6), axis="y", toward="x")
+    occ = [models._mesh("bunny.obj", (0.0, 1.0, 0.0), 0.8, bend)]
+    return models._scene(method, occ, env=models._sky(), res=res, n_frames=2, self_shadow=True)
+
+
 def _cases():
     cases = dict(models._cases())
     cases["airplane_studio_twist"] = (_airplane_studio_twist, 0, "analytic", False)
     cases["airplane_studio_bend_last"] = (_airplane_studio_bend, 1, "analytic", False)
     cases["spot_self_sky_bend_last"] = (_spot_self_sky_bend, 1, "analytic", False)
+    cases["bunny_self_sky_bend_last"] = (_bunny_self_sky_bend, 1, "analytic", False)
     return cases
 
 

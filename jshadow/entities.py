@@ -117,8 +117,9 @@ class Method:
     rays per pose (K directions, not the grid's); without environment lights it is "field".
     "maps" gives "rays"' two quantities (the transfer, and the lamps' visibility) from depth images
     of the mesh's entry faces plus exact rays against the faces within two rings of each vertex
-    (:mod:`jshadow.visibility._own_maps`: the transfer over an 8 × 16 sphere grid at 64² pixels,
-    the lamps at ``lamp_images`` pixels, 128 if 0), for a mesh that deforms: the animated bunny's
+    (:mod:`jshadow.visibility._own_maps`: the transfer over a ``self_maps_grid`` sphere grid, 8 × 16
+    by default, looked up in ``self_maps_resolution``² pixels, 64; the lamps at ``lamp_images``
+    pixels, 128 if 0), for a mesh that deforms: the animated bunny's
     vertices under the studio map 1.26 % relative RMSE with "rays" (1.4 s per frame), 1.40 % with
     "maps" (0.12–0.14 s with the lamp images), the bunny's under a sky 0.34 against 1.77 % (BENCHMARKS.md
     "Self-shadowing by depth images"); closed meshes, concrete poses (a traced pose is cast by
@@ -205,6 +206,8 @@ class Method:
     environment_lights: int = 0  # K distant lights split off a lat-long map's bright part (0: none)
     environment_threshold: float = 4.0  # the split's radiance threshold over the map's mean
     lamp_images: int = 0  # R: orthographic R × R images per environment light (0: the shell's)
+    self_maps_grid: tuple[int, int] = (8, 16)  # "maps": the transfer's θ × φ sphere grid
+    self_maps_resolution: int = 64  # "maps": pixels per side of the transfer's depth images
 
     @classmethod
     def paper(cls, **options) -> Method:
@@ -287,6 +290,12 @@ class Method:
         r = self.lamp_images
         if int(r) != r or r < 0 or 0 < r < 8:
             raise ValueError(f"method.lamp_images must be 0 or an integer >= 8, got {r}")
+        g = self.self_maps_grid
+        if len(g) != 2 or min(g) < 2:
+            raise ValueError(f"method.self_maps_grid must be two integers >= 2, got {g}")
+        r = self.self_maps_resolution
+        if int(r) != r or r < 8:
+            raise ValueError(f"method.self_maps_resolution must be an integer >= 8, got {r}")
         if not (math.isfinite(self.environment_threshold) and self.environment_threshold > 0):
             raise ValueError(f"method.environment_threshold must be > 0, got {self.environment_threshold}")
         if self.light_visibility == "images" and (self.shell <= 1.0 or self.bsv_method == "brute"):

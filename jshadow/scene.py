@@ -597,10 +597,9 @@ def _concrete_lift(scene: Scene, t) -> float | None:
     return None if lift is None else float(lift)
 
 
-# self_visibility = "maps" (jshadow.visibility._own_maps): the transfer's sphere grid and image
-# pixels, and the lamps' image pixels where method.lamp_images is 0
-MAPS_GRID = (8, 16)
-MAPS_RESOLUTION = 64
+# self_visibility = "maps" (jshadow.visibility._own_maps; the transfer's sphere grid and image pixels
+# are method.self_maps_grid and method.self_maps_resolution): the lamps' image pixels where
+# method.lamp_images is 0
 MAPS_LAMP_RESOLUTION = 128
 MAPS_RINGS = 2  # rings of faces about each vertex tested by exact rays
 MAPS_MARGIN = 3.0  # pixels: entries in the images closer ahead of a vertex are the local rays' to find
@@ -642,8 +641,9 @@ def occluder_own_visibility(occ: MeshOccluder, t, scene: Scene, cache: bool = Tr
     :data:`SELF_RAYS_NO_DERIVATIVE`: binary visibility has no derivative to give.
 
     With ``self_visibility = "maps"`` a concrete pose's transfer comes from depth images and local
-    rays instead (:func:`jshadow.visibility.vertex_transfer_maps`, :data:`MAPS_GRID` at
-    :data:`MAPS_RESOLUTION` pixels), cached or not the same way; a traced pose is cast by rays.
+    rays instead (:func:`jshadow.visibility.vertex_transfer_maps`, ``method.self_maps_grid`` at
+    ``method.self_maps_resolution`` pixels), cached or not the same way; a traced pose is cast by
+    rays.
     """
     m = scene.method
     t = jnp.asarray(t, occ.unit_vertices.dtype)
@@ -654,7 +654,7 @@ def occluder_own_visibility(occ: MeshOccluder, t, scene: Scene, cache: bool = Tr
     concrete = v_np is not None and f_np is not None and lift is not None
     if concrete and (cache or m.self_visibility == "maps"):  # "maps" needs a concrete pose
         key = (v_np.shape, str(v_np.dtype), v_np.tobytes(), f_np.shape, f_np.tobytes(), m.sh_bands, grid)
-        key = (*key, lift, m.self_visibility)
+        key = (*key, lift, m.self_visibility, tuple(m.self_maps_grid), m.self_maps_resolution)
         hit = [own for k, own in _OWN if k == key] if cache else []
         if not hit:
             with jax.ensure_compile_time_eval():
@@ -664,7 +664,14 @@ def occluder_own_visibility(occ: MeshOccluder, t, scene: Scene, cache: bool = Tr
                     local = _ring_faces(f_np, v_np.shape[0])
                     n = m.sh_bands
                     own = vertex_transfer_maps(
-                        v_np, f_np, n, local, lift, MAPS_GRID, MAPS_RESOLUTION, MAPS_TRANSFER_MARGIN
+                        v_np,
+                        f_np,
+                        n,
+                        local,
+                        lift,
+                        tuple(m.self_maps_grid),
+                        m.self_maps_resolution,
+                        MAPS_TRANSFER_MARGIN,
                     )
                 else:
                     own = vertex_visibility_sh(v_np, f_np, m.sh_bands, grid, offset=lift, transfer=True)

@@ -223,7 +223,12 @@ def test_light_visibility_auto_takes_the_images_where_they_apply(tmp_path):
     their shape, else "field"."""
     from pathlib import Path
 
-    from jshadow.config import AUTO_ENVIRONMENT_LIGHTS, AUTO_ENVIRONMENT_LIGHTS_DEFORMING, build_scene
+    from jshadow.config import (
+        AUTO_ENVIRONMENT_LIGHTS,
+        AUTO_ENVIRONMENT_LIGHTS_DEFORMING,
+        AUTO_MAPS_GRID,
+        build_scene,
+    )
 
     hdr = str(Path(__file__).resolve().parents[1] / "assets" / "envmaps" / "studio_small_03_512x256.hdr")
     (tmp_path / "open.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 2\nf 1 3 2\nf 1 2 4\nf 1 4 3\n")
@@ -268,6 +273,27 @@ def test_light_visibility_auto_takes_the_images_where_they_apply(tmp_path):
         KD,
     )
     assert chosen({**base, "occluder": bent, "receiver": own, "light": []}, "maps") == ("sh", 0)
+
+    def maps(d):
+        m = build_scene(config_from_dict(d, root=tmp_path)).method
+        return m.self_maps_grid, m.self_maps_resolution
+
+    # "maps" with the environment through the transfer alone: the finer grid, at the pixels of the
+    # mesh's edges (this coarse egg: the floor); lamps carry a map's bright part, or there is no
+    # environment: the coarse grid; explicit keys kept, and checked
+    fine, coarse = (AUTO_MAPS_GRID, 64), ((8, 16), 64)
+    assert maps({**base, "occluder": bent, "receiver": own, "light": []}) == fine
+    assert maps({**base, "occluder": bent, "receiver": own}) == fine
+    assert maps({**base, "occluder": bent, "receiver": own, "environment": studio}) == coarse
+    no_env = {k: v for k, v in base.items() if k != "environment"}
+    assert maps({**no_env, "occluder": bent, "receiver": own}) == coarse
+    assert maps({**base, "receiver": own}) == coarse  # "rays": the keys do not apply
+    given = {"self_maps_grid": [6, 10], "self_maps_resolution": 48}
+    assert maps({**base, "occluder": bent, "receiver": own, "method": given}) == ((6, 10), 48)
+    with pytest.raises(ConfigError, match="self_maps_resolution"):
+        config_from_dict({**base, "method": {"self_maps_resolution": 4}})
+    with pytest.raises(ConfigError, match="self_maps_grid"):
+        config_from_dict({**base, "method": {"self_maps_grid": [1, 8]}})
     # the n-band path asked for by name keeps the field (what it meant before "auto")
     assert chosen({**base, "receiver": own, "method": {"light_visibility": "sh"}}) == ("sh", 0)
     assert chosen({**base, "receiver": own, "method": {"preset": "paper"}}) == ("sh", 0)
@@ -325,6 +351,29 @@ def test_light_visibility_auto_takes_the_images_where_they_apply(tmp_path):
     assert sizes({**base, "method": {"light_cap": [2, 4]}}) == ((64, 64), (2, 4))
     with pytest.raises(ConfigError, match="directions"):
         config_from_dict({**base, "method": {"directions": "many"}})
+
+
+def test_maps_resolution_follows_the_median_edge():
+    """The own vertices' depth images are sized so the finest mesh's median edge spans about 2.8
+    pixels of its bounding diameter, in steps of 32 within [64, 128]: the spot cow 128, the bunny
+    96, a coarse or small mesh the floor, a finer one than the cow the ceiling."""
+    from pathlib import Path
+    from types import SimpleNamespace
+
+    from jshadow.config import maps_resolution
+    from jshadow.geometry import icosphere, load_mesh
+
+    assets = Path(__file__).resolve().parents[1] / "assets"
+
+    def mesh(m):
+        return SimpleNamespace(unit_vertices=np.asarray(m.vertices), faces=np.asarray(m.faces))
+
+    spot, bunny = (mesh(load_mesh(assets / f, dtype=jnp.float32)) for f in ("spot.obj", "bunny.obj"))
+    small = mesh(load_mesh(assets / "bunny_small.obj", dtype=jnp.float32))
+    assert maps_resolution([spot]) == 128 and maps_resolution([bunny]) == 96
+    assert maps_resolution([small]) == 64 and maps_resolution([]) == 64
+    assert maps_resolution([small, bunny]) == 96  # the finest mesh decides
+    assert maps_resolution([mesh(icosphere(5))]) == 128  # capped
 
 
 EGG_LIGHT = (

@@ -10,6 +10,7 @@ does not re-read them.
 from __future__ import annotations
 
 import functools
+import math
 import pathlib
 
 import jax
@@ -220,6 +221,8 @@ _LIGHT_KEYS = (
     "directions",
     "light_cap",
     "lamp_images",
+    "self_maps_grid",
+    "self_maps_resolution",
 )
 _N_BAND = {k: _AUTO_FALLBACK[k] for k in _LIGHT_KEYS}
 # what directions = "auto" and light_cap = "auto" take with the occlusion images: sharper images
@@ -228,10 +231,44 @@ AUTO_IMAGE_DIRECTIONS = (64, 64)
 AUTO_LIGHT_CAP = (8, 16)
 # pixels per side of the orthographic images that a static mesh's map lamps are looked up in
 AUTO_LAMP_IMAGES = 128
+# self_visibility = "maps" where an environment reaches the own vertices through their transfer
+# alone (no lamps split off): a finer sphere grid, in images whose pixel is about a third of the
+# mesh's median edge (the bending spot cow under a sky 2.07 -> 1.0 % at 1.3x the paper's frame,
+# the bending bunny 1.47 -> 0.9 %; BENCHMARKS.md "Self-shadowing by depth images")
+AUTO_MAPS_GRID = (12, 24)
+AUTO_MAPS_EDGE_PIXELS = 2.8
+AUTO_MAPS_RESOLUTION = (64, 128)  # the range of that resolution, in steps of 32
+
+
+def maps_resolution(meshes) -> int:
+    """Pixels per side of the own-vertex depth images at which the median edge of the finest of
+    ``meshes`` (rest poses) spans :data:`AUTO_MAPS_EDGE_PIXELS` pixels of the bounding diameter,
+    rounded up to a multiple of 32 within :data:`AUTO_MAPS_RESOLUTION` (the spot cow: 128, the
+    bunny: 96)."""
+    lo, hi = AUTO_MAPS_RESOLUTION
+    need = lo
+    for o in meshes:
+        if isinstance(o.unit_vertices, jax.core.Tracer):  # traced (build_scene under jit): the floor
+            continue
+        v = np.asarray(o.unit_vertices, np.float64)
+        f = np.asarray(o.faces)
+        e = np.concatenate([v[f[:, i]] - v[f[:, (i + 1) % 3]] for i in range(3)])
+        center = 0.5 * (v.max(0) + v.min(0))
+        diameter = 2.0 * np.linalg.norm(v - center, axis=1).max()
+        edge = float(np.median(np.linalg.norm(e, axis=1))) / diameter
+        if edge > 0:
+            need = max(need, 32 * math.ceil(AUTO_MAPS_EDGE_PIXELS / edge / 32))
+    return int(min(max(need, lo), hi))
 
 
 def auto_light_path(
-    occluders, has_lights: bool, hdr: bool, self_shadow: bool, shell: float, bsv_method: str
+    occluders,
+    has_lights: bool,
+    hdr: bool,
+    self_shadow: bool,
+    shell: float,
+    bsv_method: str,
+    environment: bool = True,
 ) -> dict:
     """The light path the "auto" options take for a scene's content, as the ``[method]`` keys
     ``light_visibility``, ``environment_lights``, ``self_visibility``, ``directions``,
@@ -261,7 +298,12 @@ def auto_light_path(
     against the paper, every scene in one run"); "maps" for closed meshes that deform: the same
     two quantities from depth images and rays against each vertex's nearby faces, made every
     frame (about 5× cheaper than the cast and less accurate: the bunny's vertices under a sky
-    1.8 % against 0.3 %; :mod:`jshadow.visibility._own_maps`); else "field".
+    1.8 % against 0.3 %; :mod:`jshadow.visibility._own_maps`); else "field". With "maps", an
+    ``environment`` not split into lamps reaches the own vertices through their transfer alone,
+    which then takes :data:`AUTO_MAPS_GRID` directions in images of :func:`maps_resolution`
+    pixels (``self_maps_grid``, ``self_maps_resolution``; else 8 × 16 at 64: where lamps carry
+    the map's bright part the transfer carries its dim rest, the animated bunny's vertices 1.40 %
+    either way).
     (For a config, :func:`build_scene` asks this only for the default preset without ``[fit]``.)
 
     Why: the n-band path cannot shadow small bright sources within the accuracy targets (exact
@@ -284,7 +326,11 @@ def auto_light_path(
     k = 0
     if hdr and bool(meshes):
         k = AUTO_ENVIRONMENT_LIGHTS if static else AUTO_ENVIRONMENT_LIGHTS_DEFORMING
-    if applies and (has_lights or k):
+    images = applies and (has_lights or k)
+    maps = {key: _N_BAND[key] for key in ("self_maps_grid", "self_maps_resolution")}
+    if own == "maps" and environment and not (images and k):
+        maps = {"self_maps_grid": AUTO_MAPS_GRID, "self_maps_resolution": maps_resolution(meshes)}
+    if images:
         return {
             "light_visibility": "images",
             "environment_lights": k,
@@ -293,8 +339,9 @@ def auto_light_path(
             "directions": AUTO_IMAGE_DIRECTIONS if has_lights else _N_BAND["directions"],
             "light_cap": AUTO_LIGHT_CAP if has_lights else _N_BAND["light_cap"],
             "lamp_images": AUTO_LAMP_IMAGES if k else 0,
+            **maps,
         }
-    return dict(_N_BAND, self_visibility=own)
+    return dict(_N_BAND, self_visibility=own, **maps)
 
 
 def _light_path(config: Config, occluders: tuple, has_lights: bool) -> dict:
@@ -318,7 +365,9 @@ def _light_path(config: Config, occluders: tuple, has_lights: bool) -> dict:
         chosen["light_visibility"] = m.light_visibility
     elif m.preset == "default" and config.fit is None:
         self_shadow = config.receiver.self_shadow
-        chosen = auto_light_path(occluders, has_lights, hdr, self_shadow, m.shell, m.bsv_method)
+        chosen = auto_light_path(
+            occluders, has_lights, hdr, self_shadow, m.shell, m.bsv_method, environment=env is not None
+        )
     visibility = chosen["light_visibility"]
     k = m.environment_lights
     if k not in (0, "auto") and visibility != "images":

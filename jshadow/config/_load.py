@@ -202,6 +202,8 @@ _METHOD_KEYS = (
     "environment_lights",
     "lamp_images",
     "environment_threshold",
+    "self_maps_grid",
+    "self_maps_resolution",
 )
 
 
@@ -245,6 +247,10 @@ def _method(t: _Table) -> MethodConfig:
         ),
         environment_threshold=t.number("environment_threshold", 4.0, check="positive"),
         lamp_images=_auto_or(t, "lamp_images", lambda: t.integer("lamp_images", 0, lo=0)),
+        self_maps_grid=_auto_or(t, "self_maps_grid", lambda: t.integers("self_maps_grid", 2, [8, 16], lo=2)),
+        self_maps_resolution=_auto_or(
+            t, "self_maps_resolution", lambda: t.integer("self_maps_resolution", 64, lo=8)
+        ),
     )
     try:
         return MethodConfig(**cfg)

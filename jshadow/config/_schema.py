@@ -87,6 +87,8 @@ _AUTO_FALLBACK = {
     "directions": (32, 32),
     "light_cap": (4, 8),
     "lamp_images": 0,
+    "self_maps_grid": (8, 16),
+    "self_maps_resolution": 64,
 }
 
 
@@ -132,7 +134,12 @@ class MethodConfig(eqx.Module):
     takes the images and the environment is a lat-long map, else 0), and ``lamp_images`` "auto" |
     R (0, or ≥ 8: those lights looked up in orthographic R × R images of each mesh along their
     directions instead of the shell's images, :mod:`jshadow.visibility._lamps`; "auto", the
-    default: 128 where ``environment_lights = "auto"`` takes the lights, else 0).
+    default: 128 where ``environment_lights = "auto"`` takes the lights, else 0), and for
+    ``self_visibility = "maps"`` ``self_maps_grid`` "auto" | (θ, φ) (the own vertices' transfer
+    over that sphere grid) and ``self_maps_resolution`` "auto" | R (≥ 8: its depth images' pixels
+    per side); "auto", the defaults: 12 × 24 at R from the meshes' edge lengths where an
+    environment reaches the vertices through the transfer alone, else 8 × 16 at 64
+    (:func:`jshadow.config.auto_light_path`).
     """
 
     preset: str = eqx.field(static=True, default="default")
@@ -158,6 +165,8 @@ class MethodConfig(eqx.Module):
     environment_lights: int | str = eqx.field(static=True, default="auto")
     environment_threshold: float = eqx.field(static=True, default=4.0)
     lamp_images: int | str = eqx.field(static=True, default="auto")
+    self_maps_grid: tuple[int, int] | str = eqx.field(static=True, default="auto")
+    self_maps_resolution: int | str = eqx.field(static=True, default="auto")
 
     def __check_init__(self):
         if self.model not in MODELS:
@@ -172,10 +181,12 @@ class MethodConfig(eqx.Module):
     def to_method(self, **decided) -> Method:
         """The :class:`jshadow.entities.Method` these options describe. The options that may be
         "auto" (``bsv_images``, ``light_visibility``, ``environment_lights``, ``self_visibility``,
-        ``directions``, ``light_cap``, ``lamp_images``) take the value given for them in ``decided`` — what
+        ``directions``, ``light_cap``, ``lamp_images``, ``self_maps_grid``, ``self_maps_resolution``)
+        take the value given for them in ``decided`` — what
         :func:`jshadow.config.build_scene` decides for a config
         (:func:`jshadow.config._build._bsv_images`, :func:`~jshadow.config._build._light_path`) —
-        or, without one, the library's default ("samples", "sh", 0, "field", 32 × 32, 4 × 8, 0)."""
+        or, without one, the library's default ("samples", "sh", 0, "field", 32 × 32, 4 × 8, 0,
+        8 × 16, 64)."""
         chosen = {}
         for name, fallback in _AUTO_FALLBACK.items():
             value = getattr(self, name)
@@ -204,6 +215,8 @@ class MethodConfig(eqx.Module):
                 environment_lights=chosen["environment_lights"],
                 environment_threshold=float(self.environment_threshold),
                 lamp_images=chosen["lamp_images"],
+                self_maps_grid=tuple(chosen["self_maps_grid"]),
+                self_maps_resolution=chosen["self_maps_resolution"],
             )
         except (ValueError, TypeError) as err:
             raise ConfigError(None, None, str(err)) from None
