@@ -1,5 +1,6 @@
 """Orthographic lamp images (jshadow.visibility._lamps): coverage against orthographic rays, lookups
-against exact rays, the size groups against one window for all, the renderer's use of them."""
+against exact rays, their bilinear interpolation of the coverage, the size groups against one window
+for all, the renderer's use of them."""
 
 import jax
 import jax.numpy as jnp
@@ -54,9 +55,38 @@ def test_lookups_from_outside_match_exact_rays_but_at_the_silhouette(mesh, rng):
     vis = np.asarray(lamp_visibility(img, p))
     exact = ~np.asarray(ray_fan_any_hit(p, jnp.broadcast_to(d, (p.shape[0], *d.shape)), v, f))
     assert 0.01 < 1 - exact.mean() < 0.5  # some rays are blocked, most are not
-    assert np.mean(vis != exact) < 0.01
+    assert np.mean(np.abs(vis - exact)) < 0.01
+    assert np.all((vis >= 0) & (vis <= 1)) and np.mean((vis > 0) & (vis < 1)) < 0.05  # soft at edges only
     np.testing.assert_array_equal(np.asarray(lamp_visibility(img, p, slice(4, 12))), vis[:, 4:12])
-    np.testing.assert_array_equal(np.asarray(jax.jit(lamp_visibility)(img, p)), vis)
+    np.testing.assert_allclose(np.asarray(jax.jit(lamp_visibility)(img, p)), vis, atol=1e-5)
+
+
+def test_lookups_interpolate_the_coverage_bilinearly(mesh):
+    """At a pixel centre the lookup is that pixel's coverage; halfway between two pixel centres the
+    mean of theirs; a point behind the occluder (the sphere not ahead) sees the lamp."""
+    v, f = mesh
+    d = jnp.asarray([[0.3, 0.9, -0.2]], jnp.float32)
+    res = 32
+    img = lamp_images(v, f, d, res)
+    cov = np.asarray(img.covered[0], np.float64)
+    u = -img.radius + (jnp.arange(res, dtype=jnp.float32) + 0.5) * 2 * img.radius / res
+    ahead = img.center - 2 * img.radius * img.directions[0]  # the sphere ahead of every point
+
+    def points(x, y):  # (len,) image coordinates -> world points in front of the occluder
+        return ahead + x[:, None] * img.e1[0] + y[:, None] * img.e2[0]
+
+    ii, jj = np.meshgrid(np.arange(res), np.arange(res), indexing="ij")
+    ii, jj = ii.reshape(-1), jj.reshape(-1)
+    got = np.asarray(lamp_visibility(img, points(u[jj], u[ii])))[:, 0]
+    np.testing.assert_allclose(got, 1.0 - cov[ii, jj], atol=1e-4)
+    keep = jj < res - 1
+    mid = 0.5 * (u[jj[keep]] + u[jj[keep] + 1])
+    got = np.asarray(lamp_visibility(img, points(mid, u[ii[keep]])))[:, 0]
+    want = 1.0 - 0.5 * (cov[ii[keep], jj[keep]] + cov[ii[keep], jj[keep] + 1])
+    np.testing.assert_allclose(got, want, atol=1e-3)
+    assert np.any(np.abs(want - 0.5) < 1e-9)  # some midpoints straddle the silhouette
+    behind = img.center + 2 * img.radius * img.directions[0]
+    np.testing.assert_array_equal(np.asarray(lamp_visibility(img, behind[None])), 1.0)
 
 
 def test_bad_input_is_refused(mesh):
