@@ -299,9 +299,12 @@ def test_light_visibility_auto_takes_the_images_where_they_apply(tmp_path):
     assert chosen({**base, "receiver": own, "method": {"preset": "paper"}}) == ("sh", 0)
     assert chosen({**base, "light": [], "environment": studio}) == ("images", K)
     assert chosen({**base, "light": []}) == ("sh", 0)  # a constant sky: nothing sharp
-    # a deforming mesh: fewer lamps, their images made every frame
+    # a deforming mesh: fewer lamps, their images made every frame, unless 128 lamps' images cost
+    # few enough pixel tests per face (a finely tessellated mesh: small windows)
     bend = [{**egg, "deform": {"type": "bend", "amount": [0.0, 0.5]}}]
     assert chosen({**base, "occluder": bend, "light": [], "environment": studio}) == ("images", KD)
+    fine = [{**bend[0], "subdivisions": 5}]
+    assert chosen({**base, "occluder": fine, "light": [], "environment": studio}) == ("images", K)
     assert chosen({**base, "occluder": bend, "environment": studio}) == ("images", KD)
     steady = [{**egg, "deform": {"type": "bend", "amount": [0.5, 0.5]}}]  # the same shape every frame
     assert chosen({**base, "occluder": steady, "light": [], "environment": studio}) == ("images", K)
@@ -374,6 +377,36 @@ def test_maps_resolution_follows_the_median_edge():
     assert maps_resolution([small]) == 64 and maps_resolution([]) == 64
     assert maps_resolution([small, bunny]) == 96  # the finest mesh decides
     assert maps_resolution([mesh(icosphere(5))]) == 128  # capped
+
+
+def test_lamp_tests_per_face_bound_the_deforming_lamps():
+    """The lamp images' pixel tests per face (half the faces entering, each a stamp² window per
+    direction): proportional to the lamps; the animated bunny's 64 lamps and the bending
+    airplane's 128 on either side of :data:`AUTO_LAMP_TESTS_PER_FACE`; a traced mesh is inf."""
+    from pathlib import Path
+    from types import SimpleNamespace
+
+    from jshadow.config import AUTO_LAMP_TESTS_PER_FACE, lamp_tests_per_face
+    from jshadow.geometry import load_mesh
+
+    assets = Path(__file__).resolve().parents[1] / "assets"
+
+    def mesh(name):
+        m = load_mesh(assets / name, dtype=jnp.float32)
+        return SimpleNamespace(unit_vertices=np.asarray(m.vertices), faces=np.asarray(m.faces))
+
+    bunny, airplane = mesh("bunny.obj"), mesh("airplane.obj")
+    assert math.isclose(lamp_tests_per_face([bunny], 128, 128), 2 * lamp_tests_per_face([bunny], 64, 128))
+    assert lamp_tests_per_face([bunny], 128, 128) > AUTO_LAMP_TESTS_PER_FACE
+    assert lamp_tests_per_face([airplane], 128, 128) <= AUTO_LAMP_TESTS_PER_FACE
+    assert lamp_tests_per_face([airplane, bunny], 128, 128) == lamp_tests_per_face([bunny], 128, 128)
+    assert lamp_tests_per_face([], 128, 128) == 0.0
+
+    def traced(v):
+        t = SimpleNamespace(unit_vertices=v, faces=bunny.faces)
+        return jnp.asarray(lamp_tests_per_face([t], 128, 128))
+
+    assert np.isinf(jax.jit(traced)(jnp.asarray(bunny.unit_vertices)))
 
 
 EGG_LIGHT = (

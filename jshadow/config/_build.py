@@ -213,6 +213,32 @@ AUTO_ENVIRONMENT_LIGHTS = 128  # what environment_lights = "auto" takes for a la
 # distinct frames at its 160² plane, margins of 2 pixels then; BENCHMARKS.md "Self-shadowing by
 # depth images")
 AUTO_ENVIRONMENT_LIGHTS_DEFORMING = 64
+# ... unless 128 lamps' images cost no more pixel tests per face than that: their images are
+# K·Σ stamp²/2 pixel tests a frame (entry faces), the paper's BSV about 245,760 ray tests per face,
+# so per face is the ratio that the 1.5x budget bounds. 2500 is about the animated bunny's with 64
+# lamps (2423; 1.37x the paper's frame at its 160² plane); the bending airplane's with 128 is 2312
+# (BENCHMARKS.md "The default against the paper, every scene in one run", fourth run)
+AUTO_LAMP_TESTS_PER_FACE = 2500.0
+
+
+def lamp_tests_per_face(meshes, lamps: int, resolution: int) -> float:
+    """Pixel tests per face of ``lamps`` entry-face lamp images at ``resolution`` pixels
+    (:func:`jshadow.visibility.lamp_images`: each face's stamp² window per direction, about half
+    of the faces entering), the largest over ``meshes`` (rest poses); inf where one is traced."""
+    from ..visibility._lamps import stamp_groups
+
+    worst = 0.0
+    for o in meshes:
+        if isinstance(o.unit_vertices, jax.core.Tracer):
+            return math.inf
+        f = np.asarray(o.faces)
+        with jax.ensure_compile_time_eval():  # concrete under a traced build_scene too
+            groups = stamp_groups(np.asarray(o.unit_vertices), f, resolution)
+        per_face = sum(len(i) * s * s for i, s in groups) / max(f.shape[0], 1)
+        worst = max(worst, 0.5 * lamps * per_face)
+    return worst
+
+
 # the n-band light path: what the light options' "auto" falls back to (MethodConfig.to_method's too)
 _LIGHT_KEYS = (
     "light_visibility",
@@ -283,8 +309,11 @@ def auto_light_path(
       fractions too, :class:`jshadow.Renderer`; the untuned twisted airplane under the studio map
       2.84 → 0.53 % relative RMSE, BENCHMARKS.md "Lamp images"), K =
       :data:`AUTO_ENVIRONMENT_LIGHTS_DEFORMING` over a mesh that deforms, whose images are made
-      every frame (the animated bunny 23.1 → 1.1 % with its vertices' "maps" below, at 1.34–1.39× the
-      paper's frame; BENCHMARKS.md "Self-shadowing by depth images");
+      every frame, where :data:`AUTO_ENVIRONMENT_LIGHTS` would cost more than
+      :data:`AUTO_LAMP_TESTS_PER_FACE` pixel tests per face (:func:`lamp_tests_per_face`; the
+      animated bunny 23.1 → 1.0 % with its vertices' "maps" below and 64 lamps, at 1.37× the
+      paper's frame; the bending airplane keeps 128, 0.60 → 0.39 %; BENCHMARKS.md "Self-shadowing
+      by depth images" and the fourth run);
     * sphere lights (``has_lights``) are shadowed through the shell's images;
 
     light visibility "images" if the first or second applies, with shell images of
@@ -326,7 +355,9 @@ def auto_light_path(
     applies = shell > 1.0 and bsv_method != "brute" and closed  # faces are concrete
     k = 0
     if hdr and bool(meshes):
-        k = AUTO_ENVIRONMENT_LIGHTS if static else AUTO_ENVIRONMENT_LIGHTS_DEFORMING
+        k = AUTO_ENVIRONMENT_LIGHTS
+        if not static and lamp_tests_per_face(meshes, k, AUTO_LAMP_IMAGES) > AUTO_LAMP_TESTS_PER_FACE:
+            k = AUTO_ENVIRONMENT_LIGHTS_DEFORMING
     images = applies and (has_lights or k)
     maps = {key: _N_BAND[key] for key in ("self_maps_grid", "self_maps_resolution")}
     if own == "maps" and environment and not (images and k):
