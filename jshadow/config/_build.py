@@ -259,9 +259,9 @@ AUTO_LIGHT_CAP = (8, 16)
 AUTO_LAMP_IMAGES = 128
 # self_visibility = "maps" where an environment reaches the own vertices through their transfer
 # alone (no lamps split off): a finer sphere grid, in images whose pixel is about a third of the
-# mesh's median edge (the bending spot cow under a sky 2.07 -> 1.03 % at 1.19x the paper's fresh
-# frame, the bending bunny 1.47 -> 0.89 % at 1.35x; BENCHMARKS.md "The default against the paper,
-# every scene in one run", fourth run)
+# mesh's median edge (the bending spot cow under a sky 2.07 -> 1.03 % at 1.19-1.28x the paper's
+# fresh frame, the bending bunny 1.47 -> 0.89 % at 1.32-1.35x, two runs; BENCHMARKS.md "The default
+# against the paper, every scene in one run", fourth run)
 AUTO_MAPS_GRID = (12, 24)
 AUTO_MAPS_EDGE_PIXELS = 2.8
 AUTO_MAPS_RESOLUTION = (64, 128)  # the range of that resolution, in steps of 32
