@@ -119,9 +119,9 @@ class Method:
     of the mesh's entry faces plus exact rays against the faces within two rings of each vertex
     (:mod:`jshadow.visibility._own_maps`: the transfer over a ``self_maps_grid`` sphere grid, 8 × 16
     by default, looked up in ``self_maps_resolution``² pixels, 64; the lamps at ``lamp_images``
-    pixels, 128 if 0), for a mesh that deforms: the animated bunny's
-    vertices under the studio map 1.26 % relative RMSE with "rays" (1.4 s per frame), 1.40 % with
-    "maps" (0.12–0.14 s with the lamp images), the bunny's under a sky 0.34 against 1.77 % (BENCHMARKS.md
+    pixels, 128 if 0), for a mesh that deforms: the animated bunny's vertices under the studio map
+    1.26 % relative RMSE with "rays" (1.4 s per frame), 1.40 % with "maps" (0.12–0.15 s with the
+    lamp images), the bunny's under a sky 0.34 against 1.77 % (8 × 16 at 64²; BENCHMARKS.md
     "Self-shadowing by depth images"); closed meshes, concrete poses (a traced pose is cast by
     rays).
 

@@ -10,8 +10,14 @@ from conftest import random_dirs
 from test_raycast import _asset
 
 from jshadow.geometry import load_mesh, normalize_to_unit_sphere
-from jshadow.visibility import lamp_images, lamp_visibility, ray_fan_any_hit, ray_triangle_any_hit
-from jshadow.visibility._lamps import stamp_groups
+from jshadow.visibility import (
+    image_coords,
+    lamp_images,
+    lamp_visibility,
+    ray_fan_any_hit,
+    ray_triangle_any_hit,
+    stamp_groups,
+)
 
 
 @pytest.fixture(scope="module")
@@ -77,7 +83,12 @@ def test_lookups_interpolate_the_coverage_bilinearly(mesh):
 
     ii, jj = np.meshgrid(np.arange(res), np.arange(res), indexing="ij")
     ii, jj = ii.reshape(-1), jj.reshape(-1)
-    got = np.asarray(lamp_visibility(img, points(u[jj], u[ii])))[:, 0]
+    centres = points(u[jj], u[ii])
+    cu, cw, _, pixel = image_coords(img, centres)
+    np.testing.assert_allclose(np.asarray(cu)[:, 0], jj, atol=1e-3)  # pixel (i, j)'s centre at (j, i)
+    np.testing.assert_allclose(np.asarray(cw)[:, 0], ii, atol=1e-3)
+    np.testing.assert_allclose(float(pixel), 2 * float(img.radius) / res, rtol=1e-6)
+    got = np.asarray(lamp_visibility(img, centres))[:, 0]
     np.testing.assert_allclose(got, 1.0 - cov[ii, jj], atol=1e-4)
     keep = jj < res - 1
     mid = 0.5 * (u[jj[keep]] + u[jj[keep] + 1])

@@ -225,7 +225,7 @@ def lamp_tests_per_face(meshes, lamps: int, resolution: int) -> float:
     """Pixel tests per face of ``lamps`` entry-face lamp images at ``resolution`` pixels
     (:func:`jshadow.visibility.lamp_images`: each face's stamp² window per direction, about half
     of the faces entering), the largest over ``meshes`` (rest poses); inf where one is traced."""
-    from ..visibility._lamps import stamp_groups
+    from ..visibility import stamp_groups
 
     worst = 0.0
     for o in meshes:

@@ -56,8 +56,10 @@ from ._images import image_ray_visibility as image_ray_visibility
 from ._images import image_reach as image_reach
 from ._images import occlusion_images as occlusion_images
 from ._lamps import LampImages as LampImages
+from ._lamps import image_coords as image_coords
 from ._lamps import lamp_images as lamp_images
 from ._lamps import lamp_visibility as lamp_visibility
+from ._lamps import stamp_groups as stamp_groups
 from ._own import vertex_visibility_sh as vertex_visibility_sh
 from ._own_maps import near_any_hit as near_any_hit
 from ._own_maps import ring_faces as ring_faces

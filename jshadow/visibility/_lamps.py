@@ -5,12 +5,14 @@ direction d from every receiver, so the rays toward it are parallel and one orth
 the occluder along d holds all of them: the ray ``x + t·d`` (t > 0) from a receiver x outside the
 occluder's bounding sphere meets the mesh iff x's projection on the plane normal to d lies in the
 mesh's projected silhouette *and* the sphere lies ahead ((c − x)·d > 0: a ray leaving the sphere's
-side moves away from it). Looked up in the pixels about x (bilinearly) this is exact up to the
-pixel size, with no extrapolation and none of the parallax between the BSV shell's grid points that limits the
-shell images' lookups (:mod:`._images`): on the untuned twisted airplane under the studio map
+side moves away from it). Looked up in the pixels about x this is exact up to the pixel size,
+with no extrapolation and none of the parallax between the BSV shell's grid points that limits
+the shell images' lookups (:mod:`._images`): on the untuned twisted airplane under the studio map
 the lamps' exact visibility (by rays) takes the plane from 2.84 to 0.47 % relative RMSE with 128
-lamps, and these images at 128² to 0.53 %, where the shell images stay at 2.2–2.8 % for any
-number of lamps (BENCHMARKS.md, "Lamp images").
+lamps, and these images at 128² to 0.53 % looked up at the nearest pixel, where the shell images
+stay at 2.2–2.8 % for any number of lamps (BENCHMARKS.md, "Lamp images"); read bilinearly
+(:func:`lamp_visibility`), 0.44 % (BENCHMARKS.md, "The default against the paper, every scene in
+one run", fourth run).
 
 The images are a per-shape quantity (they move with the occluder, not with the receivers or the
 lights' energies), made once for a mesh that keeps its shape and every frame for one that deforms.
@@ -48,7 +50,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 from ..geometry import bounding_sphere
 from ._raycast import _onb
 
-__all__ = ["LampImages", "lamp_images", "lamp_visibility"]
+__all__ = ["LampImages", "lamp_images", "lamp_visibility", "image_coords", "stamp_groups"]
 
 
 class LampImages(eqx.Module):
@@ -249,6 +251,21 @@ def lamp_images(
     return out
 
 
+def image_coords(
+    images: LampImages, points: Float[Array, "N 3"], lamps: slice = slice(None)
+) -> tuple[Float[Array, "N k"], Float[Array, "N k"], Float[Array, "N k"], Float[Array, ""]]:
+    """Where ``points`` fall in the images of lamps ``lamps``: their pixel coordinates (u, w)
+    along e1 and e2, pixel (i, j)'s centre at (u, w) = (j, i); their depth ``(x − c)·d_k`` toward
+    each lamp (world units, as :attr:`LampImages.front`); and the pixel's width (world units)."""
+    dt = points.dtype
+    res = images.front.shape[-1]
+    rel = points - images.center.astype(dt)
+    pixel = 2.0 * images.radius.astype(dt) / res
+    u = (rel @ images.e1[lamps].T.astype(dt)) / pixel + (0.5 * res - 0.5)
+    w = (rel @ images.e2[lamps].T.astype(dt)) / pixel + (0.5 * res - 0.5)
+    return u, w, rel @ images.directions[lamps].T.astype(dt), pixel
+
+
 def lamp_visibility(
     images: LampImages, points: Float[Array, "N 3"], lamps: slice = slice(None)
 ) -> Float[Array, "N k"]:
@@ -259,18 +276,13 @@ def lamp_visibility(
     points outside the bounding sphere (see the module docstring). Bilinear rather than the nearest
     pixel: a lamp stands for a region of the map, whose shadow edge is soft, and the nearest pixel
     puts every edge on the pixel grid (the studio scenes' planes 0.53–0.76 → 0.44–0.66 % relative
-    RMSE and their largest errors 5.6–12.1 → 4.6–8.6 %; BENCHMARKS.md "Lamp images"). No
-    derivative."""
+    RMSE and their largest errors 5.6–12.1 → 4.6–8.6 %; BENCHMARKS.md "The default against the
+    paper, every scene in one run", fourth run, "Bilinear lamp lookups"). No derivative."""
     cov = images.covered[lamps]  # (k, R, R)
-    d, e1, e2 = images.directions[lamps], images.e1[lamps], images.e2[lamps]
     k, res = cov.shape[0], cov.shape[-1]
-    p = jax.lax.stop_gradient(points)
-    dt = p.dtype
-    rel = p - images.center.astype(dt)
-    scale = res / (2.0 * images.radius.astype(dt))
-    u = (rel @ e1.T.astype(dt)) * scale + (0.5 * res - 0.5)  # (N, k): pixel j's centre at u = j
-    w = (rel @ e2.T.astype(dt)) * scale + (0.5 * res - 0.5)
-    ahead = (rel @ d.T.astype(dt)) < 0.0
+    u, w, z, _ = image_coords(images, jax.lax.stop_gradient(points), lamps)
+    dt = u.dtype
+    ahead = z < 0.0
     j0, i0 = jnp.floor(u), jnp.floor(w)
     fx, fy = u - j0, w - i0
     j0, i0 = j0.astype(jnp.int32), i0.astype(jnp.int32)
