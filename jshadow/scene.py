@@ -702,8 +702,10 @@ def occluder_own_light_visibility(
     :func:`occluder_own_visibility`, and likewise raising :data:`SELF_RAYS_NO_DERIVATIVE` if
     differentiated with respect to the vertices. With ``self_visibility = "maps"`` a concrete
     pose's visibility comes from entry-face images along the directions (``method.lamp_images``
-    pixels, :data:`MAPS_LAMP_RESOLUTION` if 0) and rays against each vertex's two rings of faces
-    (:func:`jshadow.visibility.vertex_lamp_visibility`); a traced pose is cast by rays."""
+    pixels, :data:`MAPS_LAMP_RESOLUTION` if 0) and rays against each vertex's two rings of faces,
+    the pairs next to a silhouette in the images tested exactly
+    (:func:`jshadow.visibility.vertex_lamp_visibility` with ``exact_ambiguous``); a traced pose is
+    cast by rays."""
     m = scene.method
     t = jnp.asarray(t, occ.unit_vertices.dtype)
     v = _vertices_at(occ, t)
@@ -723,7 +725,9 @@ def occluder_own_light_visibility(
                     res = m.lamp_images or MAPS_LAMP_RESOLUTION
                     images = _lamp_images_of(v_np, f_np, d_np.astype(v_np.dtype), res)
                     local = _ring_faces(f_np, v_np.shape[0])
-                    vis = vertex_lamp_visibility(images, v_np, f_np, local, lift, MAPS_MARGIN)
+                    vis = vertex_lamp_visibility(
+                        images, v_np, f_np, local, lift, MAPS_MARGIN, exact_ambiguous=True
+                    )
                 else:
                     vis = _lamp_rays(v_np, f_np, d_np.astype(v_np.dtype), lift)
                 hit = [np.asarray(vis)]

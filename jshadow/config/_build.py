@@ -215,9 +215,11 @@ AUTO_ENVIRONMENT_LIGHTS = 128  # what environment_lights = "auto" takes for a la
 AUTO_ENVIRONMENT_LIGHTS_DEFORMING = 64
 # ... unless 128 lamps' images cost no more pixel tests per face than that: their images are
 # K·Σ stamp²/2 pixel tests a frame (entry faces), the paper's BSV about 245,760 ray tests per face,
-# so per face is the ratio that the 1.5x budget bounds. 2500 is about the animated bunny's with 64
-# lamps (2423; 1.37x the paper's frame at its 160² plane); the bending airplane's with 128 is 2312
-# (BENCHMARKS.md "The default against the paper, every scene in one run", fourth run)
+# so per face is the ratio that the 1.5x budget bounds. 2500 was set as about the animated bunny's
+# with 64 lamps at windows a pixel wider (2423 then, 1824 now; 1.41x the paper's frame at its 160²
+# plane with the ambiguous pairs settled exactly); the bending airplane's with 128 is 1906 (2312
+# then: 0.58x), the bunny's with 128 is 3647 (BENCHMARKS.md "The default against the paper, every
+# scene in one run", fourth and fifth runs)
 AUTO_LAMP_TESTS_PER_FACE = 2500.0
 
 

@@ -14,6 +14,7 @@
   with the exact layer count at every crossing (faster on large meshes, noisier per vertex).
 * :mod:`._own`: a mesh's visibility of itself at its own vertices, by rays (self-shadowing).
 * :mod:`._own_maps`: the same from entry-face depth images and rays against nearby faces only.
+* :mod:`._own_exact`: exact tests for the (vertex, lamp) pairs next to a silhouette in those images.
 * :mod:`._images`: single rays looked up in the BSV's occlusion images (sharp sphere-light shadows).
 * :mod:`._coverage`: those images made continuous along the scan lines, with an exact derivative.
 * :mod:`._lamps`: orthographic coverage and depth images along fixed directions (exact distant-lamp
@@ -61,6 +62,7 @@ from ._lamps import lamp_images as lamp_images
 from ._lamps import lamp_visibility as lamp_visibility
 from ._lamps import stamp_groups as stamp_groups
 from ._own import vertex_visibility_sh as vertex_visibility_sh
+from ._own_exact import settle_ambiguous as settle_ambiguous
 from ._own_maps import near_any_hit as near_any_hit
 from ._own_maps import ring_faces as ring_faces
 from ._own_maps import vertex_lamp_visibility as vertex_lamp_visibility
