@@ -215,12 +215,11 @@ AUTO_ENVIRONMENT_LIGHTS = 128  # what environment_lights = "auto" takes for a la
 AUTO_ENVIRONMENT_LIGHTS_DEFORMING = 64
 # ... unless 128 lamps' images cost no more pixel tests per face than that: their images are
 # K·Σ stamp²/2 pixel tests a frame (entry faces), the paper's BSV about 245,760 ray tests per face,
-# so per face is the ratio that the 1.5x budget bounds. 2500 was set as about the animated bunny's
-# with 64 lamps at windows a pixel wider (2423 then, 1824 now; 1.41x the paper's frame at its 160²
-# plane with the ambiguous pairs settled exactly); the bending airplane's with 128 is 1906 (2312
-# then: 0.58x), the bunny's with 128 is 3647 (BENCHMARKS.md "The default against the paper, every
-# scene in one run", fourth and fifth runs)
-AUTO_LAMP_TESTS_PER_FACE = 2500.0
+# so per face is the ratio that the 1.5x budget bounds. 3500 lies between the bending airplane's
+# 128 lamps (2499: 0.5x the paper's frame) and the animated bunny's 128 (5311), whose 64 (2655)
+# take 1.4x the paper's frame at its 160² plane with the ambiguous pairs settled (BENCHMARKS.md
+# "The default against the paper, every scene in one run", fifth run; windows of powers of two)
+AUTO_LAMP_TESTS_PER_FACE = 3500.0
 
 
 def lamp_tests_per_face(meshes, lamps: int, resolution: int) -> float:

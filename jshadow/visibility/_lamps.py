@@ -26,11 +26,11 @@ holds the front-most depth of the faces imaged; with ``entry_only`` only the fac
 the lamp enters the mesh through (about half, each direction rasterising its own), which for a
 closed mesh cover the same pixels and give the depth a point on its own surface is tested against
 (:mod:`._own_maps`). Cost: K·F·stamp² tests (the bunny's 3798 faces at 128² pixels: windows of
-4–24 pixels per side, 14 % of the faces in windows wider than 8, grouped by size, each group's
-count padded to one of four sizes per octave so that a deforming mesh compiles few shapes): its
-128 images take 94 ms of all faces and 87 ms of the entry faces (107 and 97 ms with windows a
-pixel wider, the same images, in the same run; 0.23 s before the windows); the spot cow's 288 at
-128², 126 ms of the entry faces against 174 ms.
+4–32 pixels per side, a power of two, 14 % of the faces in windows of 16 or more, grouped by size,
+each group's count padded to one of four sizes per octave so that a deforming mesh compiles few
+shapes): its 128 images take 80 ms of all faces and 76 ms of the entry faces (101 ms of the entry
+faces with windows of 4, 6, 8, 12, ... pixels, and 97 ms more with each a pixel wider than needed,
+the same images); the spot cow's 288 at 128², 130 ms of the entry faces (147 and 174 ms).
 
 Limitations: receivers outside the bounding sphere only (an occluder's own vertices need the depth
 and their own nearby faces, :mod:`._own_maps`; :func:`jshadow.scene.environment_visible_fraction`
@@ -98,7 +98,9 @@ def _pixel_coords(vertices, directions, resolution):
     return center, radius, d, e1, e2, px, py
 
 
-_BUCKETS = (4, 6, 8, 12, 16, 24, 32, 48, 64, 96, 128, 192, 256)
+# powers of two: a window of 6 or 12 pixels per side is slower per face than one of 8 or 16
+# (BENCHMARKS.md "The default against the paper, every scene in one run", fifth run)
+_BUCKETS = (4, 8, 16, 32, 64, 128, 256)
 
 
 def stamp_groups(vertices: ArrayLike, faces: ArrayLike, resolution: int) -> list[tuple[np.ndarray, int]]:
