@@ -357,8 +357,8 @@ def test_light_visibility_auto_takes_the_images_where_they_apply(tmp_path):
 
 
 def test_maps_resolution_follows_the_median_edge():
-    """The own vertices' depth images are sized so the finest mesh's median edge spans about 2.8
-    pixels of its bounding diameter, in steps of 32 within [64, 128]: the spot cow 128, the bunny
+    """The own vertices' depth images are sized so the finest mesh's median edge spans about 3
+    pixels of its bounding diameter, in steps of 32 within [64, 160]: the spot cow 160, the bunny
     96, a coarse or small mesh the floor, a finer one than the cow the ceiling."""
     from pathlib import Path
     from types import SimpleNamespace
@@ -373,10 +373,10 @@ def test_maps_resolution_follows_the_median_edge():
 
     spot, bunny = (mesh(load_mesh(assets / f, dtype=jnp.float32)) for f in ("spot.obj", "bunny.obj"))
     small = mesh(load_mesh(assets / "bunny_small.obj", dtype=jnp.float32))
-    assert maps_resolution([spot]) == 128 and maps_resolution([bunny]) == 96
+    assert maps_resolution([spot]) == 160 and maps_resolution([bunny]) == 96
     assert maps_resolution([small]) == 64 and maps_resolution([]) == 64
     assert maps_resolution([small, bunny]) == 96  # the finest mesh decides
-    assert maps_resolution([mesh(icosphere(5))]) == 128  # capped
+    assert maps_resolution([mesh(icosphere(5))]) == 160  # capped
 
 
 def test_lamp_tests_per_face_bound_the_deforming_lamps():

@@ -260,18 +260,20 @@ AUTO_LIGHT_CAP = (8, 16)
 AUTO_LAMP_IMAGES = 128
 # self_visibility = "maps" where an environment reaches the own vertices through their transfer
 # alone (no lamps split off): a finer sphere grid, in images whose pixel is about a third of the
-# mesh's median edge (the bending spot cow under a sky 2.07 -> 1.03 % at 1.19-1.28x the paper's
-# fresh frame, the bending bunny 1.47 -> 0.89 % at 1.32-1.35x, two runs; BENCHMARKS.md "The default
-# against the paper, every scene in one run", fourth run)
+# mesh's median edge (the bending spot cow under a sky 2.07 -> 1.03 % at 128² pixels, 0.99 % at
+# 160² at 1.17x the paper's fresh frame; the bending bunny 1.47 -> 0.89 % at 96², 1.2-1.35x in
+# three runs; BENCHMARKS.md "The default against the paper, every scene in one run", fourth and
+# fifth runs). 3.0 pixels per median edge, within 64-160: the cow 160, the bunny 96 (at 2.8 the
+# cow took 128; both meshes were used to choose it)
 AUTO_MAPS_GRID = (12, 24)
-AUTO_MAPS_EDGE_PIXELS = 2.8
-AUTO_MAPS_RESOLUTION = (64, 128)  # the range of that resolution, in steps of 32
+AUTO_MAPS_EDGE_PIXELS = 3.0
+AUTO_MAPS_RESOLUTION = (64, 160)  # the range of that resolution, in steps of 32
 
 
 def maps_resolution(meshes) -> int:
     """Pixels per side of the own-vertex depth images at which the median edge of the finest of
     ``meshes`` (rest poses) spans :data:`AUTO_MAPS_EDGE_PIXELS` pixels of the bounding diameter,
-    rounded up to a multiple of 32 within :data:`AUTO_MAPS_RESOLUTION` (the spot cow: 128, the
+    rounded up to a multiple of 32 within :data:`AUTO_MAPS_RESOLUTION` (the spot cow: 160, the
     bunny: 96)."""
     lo, hi = AUTO_MAPS_RESOLUTION
     need = lo
