@@ -19,9 +19,10 @@ entries padded to a few sizes per octave, so that a deforming mesh compiles few 
 Measured on the animated bunny under the studio map (64 lamps, 128² images, its last frame; exact
 rays from the lifted vertices as the measure): the lamp-weighted error per vertex 3.25 → 0.34 %
 RMS (largest 68.5 → 10.1 %); the render 1.03 → 0.94 % relative RMSE (vertices 1.40 → 1.24 %, what
-exact rays for all pairs give), for 18 ms more per frame at the shipped 160² plane (184.8 against
-166.5 ms, one process). Not used for the transfer's sphere grid: 288 directions over the spot
-cow's 2930 vertices took its frame from 216 to 474 ms for 1.03 → 0.95 %.
+exact rays for all pairs give), for 20 ms more per frame at the shipped 160² plane (174.0 against
+154.3 ms, the paper's 130.2 ms: ``python benchmarks/bench_own_maps.py``). Not used for the
+transfer's sphere grid: 288 directions over the spot cow's 2930 vertices (3.5 % of the pairs
+ambiguous) took its frame from 216 to 382 ms for 1.03 → 0.95 %.
 
 Limitations: entry faces only, as the images (a vertex lifted inside the mesh, in a tight crease,
 is not shadowed by the faces it would leave through); pairs whose vertex faces away from the lamp

@@ -47,10 +47,10 @@ median edge where the environment reaches the vertices through the transfer alon
 
 Cost per pose: the K images (K·F·stamp² pixel tests, one windowed scatter per face)
 and V·K·C local ray tests, against V·K·F for rays (the bunny: 64 lamps at 128², their ambiguous
-pairs settled, and the transfer's 128 directions at 64² in 148 ms per frame at the shipped 160²
-plane, 124 ms without settling, in one process; against 1.4 s for the rays. The spot cow's
-transfer at 12 × 24 and 128²: 214 ms, 187 of it the images, which windows a pixel narrower took to
-126 ms).
+pairs settled, and the transfer's 128 directions at 64² in 133 ms per frame at the shipped 160²
+plane, 112 ms without settling, ``python benchmarks/bench_own_maps.py``; against 1.4 s for the
+rays. The spot cow's transfer at 12 × 24 and 128²: 214 ms, 187 of it the images, which narrower
+windows in powers of two took to 126–130 ms).
 
 Limitations: closed, consistently oriented meshes (the entry faces must cover the silhouette); a contact
 between parts of the mesh that are far apart on it and closer than the margin is resolved only to
