@@ -123,7 +123,7 @@ def _cut(w: np.ndarray, r0: int, r1: int, c0: int, c1: int):
 
 
 def split_environment(
-    env: Environment, count: int, threshold: float = 4.0
+    env: Environment, count: int, threshold: float = 2.0
 ) -> tuple[Environment, EnvironmentLights]:
     """Split a lat-long environment into a clamped rest and ``count`` distant lights (module docstring).
 

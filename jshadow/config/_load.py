@@ -245,7 +245,7 @@ def _method(t: _Table) -> MethodConfig:
         environment_lights=_auto_or(
             t, "environment_lights", lambda: t.integer("environment_lights", 0, lo=0)
         ),
-        environment_threshold=t.number("environment_threshold", 4.0, check="positive"),
+        environment_threshold=t.number("environment_threshold", 2.0, check="positive"),
         lamp_images=_auto_or(t, "lamp_images", lambda: t.integer("lamp_images", 0, lo=0)),
         self_maps_grid=_auto_or(t, "self_maps_grid", lambda: t.integers("self_maps_grid", 2, [8, 16], lo=2)),
         self_maps_resolution=_auto_or(

@@ -129,7 +129,7 @@ class MethodConfig(eqx.Module):
     that the fitted loss is continuous in the shape and its gradient exact, else "samples"; see
     :func:`jshadow.config.build_scene`), and
     ``environment_lights`` "auto" | K (0, or a power of two: the lat-long map's radiance
-    above ``environment_threshold`` × its mean split off as K distant lights shadowed through the
+    above ``environment_threshold`` (default 2) × its mean split off as K distant lights shadowed through the
     images; :mod:`jshadow.envlights`; "auto", the default: 128 where ``light_visibility = "auto"``
     takes the images and the environment is a lat-long map — 64 over a mesh that deforms unless
     128 lamps' images cost at most :data:`jshadow.config.AUTO_LAMP_TESTS_PER_FACE` pixel tests per
@@ -165,7 +165,7 @@ class MethodConfig(eqx.Module):
     light_images: str = eqx.field(static=True, default="samples")
     bsv_images: str = eqx.field(static=True, default="auto")
     environment_lights: int | str = eqx.field(static=True, default="auto")
-    environment_threshold: float = eqx.field(static=True, default=4.0)
+    environment_threshold: float = eqx.field(static=True, default=2.0)
     lamp_images: int | str = eqx.field(static=True, default="auto")
     self_maps_grid: tuple[int, int] | str = eqx.field(static=True, default="auto")
     self_maps_resolution: int | str = eqx.field(static=True, default="auto")
