@@ -20,13 +20,13 @@ import time
 import tomllib
 
 import numpy as np
+from bench_render import METHODS  # the same "paper" settings (this folder is on sys.path as a script)
 
 import jshadow.scene as scene_mod
 from jshadow.config import build_scene, config_from_dict
 from jshadow.runner import Renderer
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
-PAPER = {"preset": "paper", "shell": 1.0}  # as bench_render.py's "paper"
 
 
 def main() -> None:
@@ -44,7 +44,7 @@ def main() -> None:
         return Renderer(build_scene(config_from_dict(d, source=str(path), root=path.parent)))
 
     settings = {"default": (renderer({}), True), "unsettled": (renderer({}), False)}
-    settings["paper"] = (renderer(PAPER), True)
+    settings["paper"] = (renderer(METHODS["paper"]), True)
     poses = range(min(args.frames, max(settings["default"][0].scene.n_frames, 1)))
     t0 = time.perf_counter()
     for rend, settle in settings.values():  # every pose's shapes compiled first

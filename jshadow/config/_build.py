@@ -216,8 +216,8 @@ AUTO_ENVIRONMENT_LIGHTS_DEFORMING = 64
 # ... unless 128 lamps' images cost no more pixel tests per face than that: their images are
 # K·Σ stamp²/2 pixel tests a frame (entry faces), the paper's BSV about 245,760 ray tests per face,
 # so per face is the ratio that the 1.5x budget bounds. 3500 lies between the bending airplane's
-# 128 lamps (2499: 0.5x the paper's frame) and the animated bunny's 128 (5311), whose 64 (2655)
-# take 1.4x the paper's frame at its 160² plane with the ambiguous pairs settled (BENCHMARKS.md
+# 128 lamps (2499: 0.41-0.46x the paper's frame) and the animated bunny's 128 (5311), whose 64
+# (2655) take 1.33-1.34x the paper's frame at its 160² plane with the ambiguous pairs settled (BENCHMARKS.md
 # "The default against the paper, every scene in one run", fifth run; windows of powers of two)
 AUTO_LAMP_TESTS_PER_FACE = 3500.0
 
@@ -314,9 +314,9 @@ def auto_light_path(
       :data:`AUTO_ENVIRONMENT_LIGHTS_DEFORMING` over a mesh that deforms, whose images are made
       every frame, where :data:`AUTO_ENVIRONMENT_LIGHTS` would cost more than
       :data:`AUTO_LAMP_TESTS_PER_FACE` pixel tests per face (:func:`lamp_tests_per_face`; the
-      animated bunny 23.1 → 1.0 % with its vertices' "maps" below and 64 lamps, at 1.37× the
-      paper's frame; the bending airplane keeps 128, 0.60 → 0.39 %; BENCHMARKS.md "Self-shadowing
-      by depth images" and the fourth run);
+      animated bunny 23.1 → 0.69 % with its vertices' "maps" below and 64 lamps, at 1.33–1.34× the
+      paper's frame at its shipped plane; the bending airplane keeps 128, 0.60 → 0.43 %;
+      BENCHMARKS.md "The default against the paper", fourth to sixth runs);
     * sphere lights (``has_lights``) are shadowed through the shell's images;
 
     light visibility "images" if the first or second applies, with shell images of

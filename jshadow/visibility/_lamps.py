@@ -29,8 +29,10 @@ closed mesh cover the same pixels and give the depth a point on its own surface 
 4–32 pixels per side, a power of two, 14 % of the faces in windows of 16 or more, grouped by size,
 each group's count padded to one of four sizes per octave so that a deforming mesh compiles few
 shapes): its 128 images take 80 ms of all faces and 76 ms of the entry faces (101 ms of the entry
-faces with windows of 4, 6, 8, 12, ... pixels, and 97 ms more with each a pixel wider than needed,
-the same images); the spot cow's 288 at 128², 130 ms of the entry faces (147 and 174 ms).
+faces with windows of 4, 6, 8, 12, ... pixels in the same run; in another run 87 ms with those
+sizes against 97 ms with each window a pixel wider than needed; the same images); the spot cow's
+288 at 128², 130 ms of the entry faces (147 ms with sizes 4, 6, 8, 12, ... in the same run; 126
+against 174 ms in another for the narrower windows).
 
 Limitations: receivers outside the bounding sphere only (an occluder's own vertices need the depth
 and their own nearby faces, :mod:`._own_maps`; :func:`jshadow.scene.environment_visible_fraction`
@@ -101,6 +103,14 @@ def _pixel_coords(vertices, directions, resolution):
 # powers of two: a window of 6 or 12 pixels per side is slower per face than one of 8 or 16
 # (BENCHMARKS.md "The default against the paper, every scene in one run", fifth run)
 _BUCKETS = (4, 8, 16, 32, 64, 128, 256)
+
+
+def _orientation(vertices, faces):
+    """+1 for outward normals (positive enclosed volume), −1 for inward, over the whole mesh; a
+    face ``f`` is entered by a line along d where ``n_f·d · orientation < 0``."""
+    tri = vertices[faces]
+    volume6 = jnp.sum(tri[:, 0] * jnp.cross(tri[:, 1], tri[:, 2]))
+    return jnp.where(volume6 < 0, -1.0, 1.0).astype(vertices.dtype)
 
 
 def stamp_groups(vertices: ArrayLike, faces: ArrayLike, resolution: int) -> list[tuple[np.ndarray, int]]:
@@ -224,10 +234,7 @@ def lamp_images(
         raise ValueError("lamp_images: traced vertices need an explicit stamp (see stamp_groups)")
     else:
         groups = stamp_groups(vertices, faces, resolution)
-    # +1 for outward normals (positive enclosed volume), −1 for inward, over the whole mesh
-    tri = v[jnp.asarray(faces)]
-    volume6 = jnp.sum(tri[:, 0] * jnp.cross(tri[:, 1], tri[:, 2]))
-    orientation = jnp.where(volume6 < 0, -1.0, 1.0).astype(v.dtype)
+    orientation = _orientation(v, jnp.asarray(faces))
     entry_only = bool(entry_only)
     enters = None
     if entry_only and not isinstance(vertices, jax.core.Tracer):  # count each direction's entry faces

@@ -34,7 +34,8 @@ mostly occluders within a pixel sideways, not self-hits).
 Where the pixels about a vertex disagree (its ray passes within a pixel of a silhouette) the images
 cannot settle the far part; with ``exact_ambiguous`` those pairs are tested exactly against the
 entry faces near their pixel (:mod:`._own_exact`), what the scene does for the environment's lamps
-(the animated bunny's vertices 1.40 → 1.24 % relative RMSE, what exact rays for every pair give).
+(the animated bunny's vertices 1.40 → 1.24 % relative RMSE with the map split at 4 × its mean,
+what exact rays for every pair give; 0.88 % at the default 2).
 
 The transfer's sphere grid and pixels limit it more than the margins: on the bending spot cow
 under a sky (its 2930 vertices; exact rays toward the grid's directions as the measure) an 8 × 16
@@ -71,7 +72,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 from ..geometry import vertex_normals
 from ..sh import clamped_cosine, sh_basis, sphere_grid
 from ._lamps import LampImages, image_coords, lamp_images
-from ._own_exact import settle_ambiguous
+from ._own_exact import entry_ahead, settle_ambiguous
 
 __all__ = ["ring_faces", "near_any_hit", "vertex_lamp_visibility", "vertex_transfer_maps"]
 
@@ -141,15 +142,10 @@ def near_any_hit(
 @eqx.filter_jit
 def _far_hits(images: LampImages, origins, margin):
     """(N, K) whether each origin's pixel holds an entry more than ``margin`` pixels ahead of it."""
-    k, res = images.front.shape[0], images.front.shape[-1]
     u, w, z, pixel = image_coords(images, origins)
     j = jnp.floor(u + 0.5).astype(jnp.int32)  # the nearest pixel centre
     i = jnp.floor(w + 0.5).astype(jnp.int32)
-    dt = origins.dtype
-    inb = (i >= 0) & (i < res) & (j >= 0) & (j < res)
-    flat = (jnp.arange(k, dtype=jnp.int32) * (res * res))[None, :] + jnp.clip(i, 0, res - 1) * res
-    front = images.front.reshape(-1)[flat + jnp.clip(j, 0, res - 1)].astype(dt)
-    return inb & (front > z + margin * pixel)
+    return entry_ahead(images, i, j, z + margin * pixel)
 
 
 def vertex_lamp_visibility(
@@ -170,7 +166,8 @@ def vertex_lamp_visibility(
     With ``exact_ambiguous`` the pairs whose four pixel centres about the lifted vertex disagree
     (and whose vertex faces the lamp) are tested exactly against the entry faces near their pixel
     instead (:func:`jshadow.visibility.settle_ambiguous`: the animated bunny's lamps 1.40 → 1.24 %
-    relative RMSE at its vertices, for 15–20 ms more per frame)."""
+    relative RMSE at its vertices with the map split at 4 × its mean, 13.9 ms alone, 20 ms more
+    per frame in ``benchmarks/bench_own_maps.py``)."""
     if not images.entry_only:
         raise ValueError(
             "vertex_lamp_visibility needs images of the entry faces (lamp_images(..., entry_only=True))"
