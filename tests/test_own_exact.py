@@ -4,6 +4,8 @@ Claims tested: on the bunny the pairs the images leave ambiguous get the exact r
 the vertices' lamp visibility errs on far fewer cos-weighted directions than the nearest pixel's
 and adds no error of its own; the answer does not depend on the tile size the faces are binned by
 (tiles of one pixel put faces over many tiles, the large-face path; one tile holds them all);
+a sliver thinner than a pixel that covers no pixel centre beside a ray but some further along is
+found and settled;
 origins outside every image leave nothing to settle; in float64 too; a scene with
 ``self_visibility = "maps"`` settles its own vertices' lamps so.
 """
@@ -15,7 +17,13 @@ from conftest import random_dirs
 from test_own_maps import _exact_lamp_rays, bunny  # noqa: F401 (fixture)
 
 from jshadow.geometry import vertex_normals
-from jshadow.visibility import lamp_images, ring_faces, settle_ambiguous, vertex_lamp_visibility
+from jshadow.visibility import (
+    lamp_images,
+    ray_triangle_any_hit,
+    ring_faces,
+    settle_ambiguous,
+    vertex_lamp_visibility,
+)
 
 LIFT = 1e-4
 
@@ -57,6 +65,44 @@ def test_the_answer_does_not_depend_on_the_tiles(setup):
     np.testing.assert_array_equal(got[0], got[1])
     np.testing.assert_array_equal(got[1], got[2])
     assert 0.05 < got[1].mean() < 0.7
+
+
+def _blade(slope: float, half: float = 0.002):
+    """A closed box 1.8 long along (1, slope, 0), 2·half thick across it, over z in [0.1, 0.15]."""
+    t = np.array([1.0, slope]) / np.hypot(1.0, slope)
+    across = np.array([-t[1], t[0]])
+    v = np.array(
+        [[*(s * t + o * across), z] for s in (-0.9, 0.9) for o in (-half, half) for z in (0.1, 0.15)],
+        np.float32,
+    )  # corner 4·(end) + 2·(side) + (top)
+    quads = [(0, 2, 6, 4), (1, 5, 7, 3), (0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6)]
+    f = np.array([tri for a, b, c, d in quads for tri in ((a, b, c), (a, c, d))], np.int32)
+    if np.einsum("ij,ij->i", v[f[:, 0]], np.cross(v[f[:, 1]], v[f[:, 2]])).sum() < 0:
+        f = f[:, ::-1].copy()  # outward
+    return jnp.asarray(v), jnp.asarray(f), t
+
+
+def test_a_sliver_beside_the_four_centres_is_settled():
+    """A blade 0.004 thick (an eighth of a pixel at 64²) 3-5 pixels above points on its midline
+    covers a pixel centre only every few pixels along it: the four centres about most points see
+    nothing, the wider search finds the blade and the exact test blocks them."""
+    v, f, t = _blade(0.3)
+    d = jnp.asarray([[0.0, 0.0, 1.0]])
+    img = lamp_images(v, f, d, 64, entry_only=True)
+    assert 0 < int(np.sum(np.asarray(img.covered))) < 40  # isolated pixels along the blade
+    s = np.linspace(-0.7, 0.7, 300)
+    origins = jnp.asarray(np.stack([s * t[0], s * t[1], np.zeros_like(s)], 1), jnp.float32)
+    normals = jnp.broadcast_to(d[0], origins.shape)
+    exact = np.asarray(ray_triangle_any_hit(origins, d[0], v, f))
+    assert exact.all()  # every point lies under the blade
+    four = np.asarray(settle_ambiguous(img, v, f, origins, normals, 3.0, reach=0))[:, 0]
+    wide = np.asarray(settle_ambiguous(img, v, f, origins, normals, 3.0))[:, 0]
+    assert four.mean() < 0.6  # measured 0.42
+    assert wide.mean() > 0.85  # measured 0.91
+    assert np.all(wide[four])  # what the four centres settled stays settled
+    # a blade further ahead than the search's depth window is left to the four centres
+    far = np.asarray(settle_ambiguous(img, v, f, origins - jnp.asarray([0.0, 0.0, 1.0]), normals, 3.0))
+    assert far.mean() < 0.6
 
 
 def test_origins_outside_the_images_leave_nothing_to_settle(setup):

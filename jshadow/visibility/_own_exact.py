@@ -4,9 +4,13 @@
 blocked from the nearest pixel of the lamp's image. That is right wherever the pixels about the
 vertex agree; next to a silhouette in the image (the edge of an ear, a thin part less than a pixel
 to the side of the ray) the nearest pixel centre can say either. Here a pair is *ambiguous* when
-the four pixel centres around its projection disagree (the bilinear footprint of
-:func:`jshadow.visibility.lamp_visibility`) and its vertex faces the lamp, and only those pairs
-(about 2 % of the animated bunny's 1901 × 64) are tested exactly: the ray from the lifted vertex
+its vertex faces the lamp and either the four pixel centres around its projection disagree (the
+bilinear footprint of :func:`jshadow.visibility.lamp_visibility`) or, while those four do not all
+say blocked, a pixel centre up to ``reach`` pixels beyond them holds an entry ahead of the vertex
+but within ``ahead`` pixels past the margin: a sliver of the mesh close ahead (an ear's rim seen
+edge-on) that covers the ray's point but no pixel centre next to it, only isolated ones further
+along. Only those pairs (4.8 % of the animated bunny's 1901 × 64, 2.3 % by the four centres alone)
+are tested exactly: the ray from the lifted vertex
 along d enters the mesh iff an entry face's projection along d covers the vertex's projection at a
 depth ahead of it, a point-in-triangle test in the image plane against the entry faces whose
 projected bounds overlap the pair's tile (``tile`` pixels; 42 faces on average for the bunny at
@@ -17,10 +21,15 @@ only into the tiles some pair falls in, and the test runs over one flat list of 
 entries padded to a few sizes per octave, so that a deforming mesh compiles few shapes.
 
 Measured on the animated bunny under the studio map (64 lamps, 128² images, its last frame; exact
-rays from the lifted vertices as the measure): the lamp-weighted error per vertex 3.25 → 0.34 %
-RMS (largest 68.5 → 10.1 %); the render 1.03 → 0.94 % relative RMSE (vertices 1.40 → 1.24 %, what
-exact rays for all pairs give), for 20 ms more per frame at the shipped 160² plane (174.0 against
-154.3 ms, the paper's 130.2 ms: ``python benchmarks/bench_own_maps.py``). Not used for the
+rays from the lifted vertices as the measure): with the map split at 4 × its mean and the four
+centres alone, the lamp-weighted error per vertex 3.25 → 0.34 % RMS (largest 68.5 → 10.1 %), the
+render 1.03 → 0.94 % relative RMSE (vertices 1.40 → 1.24 %, what exact rays for all pairs give),
+for 20 ms more per frame at the shipped 160² plane (174.0 against 154.3 ms, the paper's 130.2 ms:
+``python benchmarks/bench_own_maps.py``). With the split at 2 × its mean (the default) the four
+centres left 0.245 % RMS (largest 8.6 %: ten wrong pairs, slivers all but two); the slivers
+(``reach`` 2, ``ahead`` 6) take it to 0.008 % (largest 0.35 %; 0.36 → 0.17 %, largest 10.4 → 5.7 %
+at its tenth frame), the vertices' largest render error 9.0 → 6.5 % of their mean, for 4 ms
+(16.3 → 20.4 ms alone). Not used for the
 transfer's sphere grid: 288 directions over the spot cow's 2930 vertices (3.5 % of the pairs
 ambiguous) took its frame from 216 to 382 ms for 1.03 → 0.95 %.
 
@@ -34,7 +43,6 @@ from __future__ import annotations
 
 from functools import partial
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -60,10 +68,16 @@ def entry_ahead(images: LampImages, i, j, threshold):
 # settled in 13.9 ms at 6 against 16.6, 14.5 and 18.8 ms at 4, 8 and 12 (one run, 0.5 ms for the
 # nearest pixels alone)
 TILE = 6
+# pixels beyond the 2 x 2 centres searched for a sliver, and how far past the margin its entry may
+# lie (the animated bunny's last frame: reach 0, 2, 3 settled 2743, 5298, 6774 pairs in 16.3, 20.7,
+# 22.3 ms for 0.245, 0.008, 0.000 % lamp-weighted RMS error; ahead 3 and 6 alike there, 6 better at
+# its tenth frame: 0.29 against 0.17 %)
+REACH = 2
+AHEAD = 6.0
 
 
-@eqx.filter_jit
-def _ambiguous(images: LampImages, vertices, faces, origins, normals, margin, tile: int):
+@partial(jax.jit, static_argnames=("tile", "reach"))
+def _ambiguous(images: LampImages, vertices, faces, origins, normals, margin, tile: int, reach: int, ahead):
     """The nearest pixel's answer and the pairs to settle, the pairs' tiles, and the entry faces
     binned into tiles that hold a pair (see :func:`settle_ambiguous`)."""
     k, res = images.front.shape[0], images.front.shape[-1]
@@ -79,7 +93,14 @@ def _ambiguous(images: LampImages, vertices, faces, origins, normals, margin, ti
     right, down = u - ju >= 0.5, w - iw >= 0.5  # the nearest of the four centres
     far = jnp.where(down, jnp.where(right, f11, f10), jnp.where(right, f01, f00))
     anyf, allf = f00 | f01 | f10 | f11, f00 & f01 & f10 & f11
-    amb = (anyf != allf) & (normals @ images.directions.T.astype(normals.dtype) > 0)
+    sliver = jnp.zeros_like(allf)  # an entry close ahead at a centre up to `reach` beyond the 2 x 2
+    near = z + (margin + ahead) * pixel
+    for a in range(-reach, reach + 2):
+        for b in range(-reach, reach + 2):
+            if not (0 <= a <= 1 and 0 <= b <= 1):
+                i, j = i0 + a, j0 + b
+                sliver = sliver | (entry_ahead(images, i, j, thr) & ~entry_ahead(images, i, j, near))
+    amb = ((anyf != allf) | (sliver & ~allf)) & (normals @ images.directions.T.astype(normals.dtype) > 0)
 
     nt = -(-res // tile)
 
@@ -147,18 +168,30 @@ def settle_ambiguous(
     normals: Float[Array, "V 3"],
     margin: float,
     tile: int = TILE,
+    reach: int = REACH,
+    ahead: float = AHEAD,
 ) -> Bool[Array, "V K"]:
     """(V, K) whether each vertex's ray toward each lamp of its entry-face ``images`` is blocked
     beyond the near part: the nearest pixel's entry more than ``margin`` pixels ahead of the
-    ``origins`` (the vertices lifted along their ``normals``), except where the four
-    pixel centres around the origin's projection disagree and the vertex faces the lamp, where
+    ``origins`` (the vertices lifted along their ``normals``), except where the vertex faces the
+    lamp and the four pixel centres around the origin's projection disagree, or a sliver shows
+    within ``reach`` pixels beyond them (an entry ahead, no more than ``ahead`` pixels past the
+    margin, while the four do not all say blocked; ``reach`` 0 looks at the four alone). There
     the ray is tested exactly against the entry faces binned into its ``tile``-pixel tile: blocked
     where it enters the mesh anywhere ahead of the origin (as the rays of
     :func:`jshadow.visibility.ray_fan_any_hit` with ``t_min`` the lift find: an entry closer than
     the lift is followed by an exit beyond it, in a closed mesh). See the module docstring."""
     k = images.front.shape[0]
     far, amb, q, qtile, number, tiles, large, bounds, proj = _ambiguous(
-        images, vertices, faces, origins, normals, jnp.asarray(margin, vertices.dtype), int(tile)
+        images,
+        vertices,
+        faces,
+        origins,
+        normals,
+        jnp.asarray(margin, vertices.dtype),
+        int(tile),
+        int(reach),
+        jnp.asarray(ahead, vertices.dtype),
     )
     iv, ik = np.nonzero(np.asarray(amb))
     if iv.size == 0:
