@@ -216,16 +216,17 @@ def test_config_keys_are_read_and_checked():
 
 def test_light_visibility_auto_takes_the_images_where_they_apply(tmp_path):
     """``light_visibility = "auto"`` and ``environment_lights = "auto"`` (the config defaults):
-    the images for a sphere light, or a lat-long map over closed meshes that keep their shape (32
-    distant lights for the map); the n-band path with a fit, the paper's preset or shell, the
-    brute-force BSV, an open mesh, sphere occluders only, or nothing sharp to shadow; explicit
-    choices are kept. ``self_visibility = "auto"``: "rays" for the own vertices of meshes that keep
-    their shape, else "field"."""
+    the images for a sphere light, or a lat-long map over closed meshes (256 distant lights for the
+    map over meshes that keep their shape, 64 over the small egg bent); the n-band path with a fit,
+    the paper's preset or shell, the brute-force BSV, an open mesh, sphere occluders only, or
+    nothing sharp to shadow; explicit choices are kept. ``self_visibility = "auto"``: "rays" for the
+    own vertices of meshes that keep their shape, else "field"."""
     from pathlib import Path
 
     from jshadow.config import (
         AUTO_ENVIRONMENT_LIGHTS,
         AUTO_ENVIRONMENT_LIGHTS_DEFORMING,
+        AUTO_ENVIRONMENT_LIGHTS_STATIC,
         AUTO_MAPS_GRID,
         build_scene,
     )
@@ -242,7 +243,9 @@ def test_light_visibility_auto_takes_the_images_where_they_apply(tmp_path):
     }
     studio = {"type": "hdr", "file": hdr, "radiance": [1, 1, 1]}
 
-    K = AUTO_ENVIRONMENT_LIGHTS  # noqa: N806
+    K = AUTO_ENVIRONMENT_LIGHTS_STATIC  # noqa: N806
+    assert K == 256
+    KM = AUTO_ENVIRONMENT_LIGHTS  # noqa: N806  (a deforming mesh whose images are cheap enough)
     KD = AUTO_ENVIRONMENT_LIGHTS_DEFORMING  # noqa: N806
 
     def chosen(d, own="field"):
@@ -304,7 +307,7 @@ def test_light_visibility_auto_takes_the_images_where_they_apply(tmp_path):
     bend = [{**egg, "deform": {"type": "bend", "amount": [0.0, 0.5]}}]
     assert chosen({**base, "occluder": bend, "light": [], "environment": studio}) == ("images", KD)
     fine = [{**bend[0], "subdivisions": 5}]
-    assert chosen({**base, "occluder": fine, "light": [], "environment": studio}) == ("images", K)
+    assert chosen({**base, "occluder": fine, "light": [], "environment": studio}) == ("images", KM)
     assert chosen({**base, "occluder": bend, "environment": studio}) == ("images", KD)
     steady = [{**egg, "deform": {"type": "bend", "amount": [0.5, 0.5]}}]  # the same shape every frame
     assert chosen({**base, "occluder": steady, "light": [], "environment": studio}) == ("images", K)

@@ -9,6 +9,7 @@ the config's numbers. ``get_param``/``set_param`` address those numbers by dotte
 
 from ._build import AUTO_ENVIRONMENT_LIGHTS as AUTO_ENVIRONMENT_LIGHTS
 from ._build import AUTO_ENVIRONMENT_LIGHTS_DEFORMING as AUTO_ENVIRONMENT_LIGHTS_DEFORMING
+from ._build import AUTO_ENVIRONMENT_LIGHTS_STATIC as AUTO_ENVIRONMENT_LIGHTS_STATIC
 from ._build import AUTO_LAMP_TESTS_PER_FACE as AUTO_LAMP_TESTS_PER_FACE
 from ._build import AUTO_MAPS_GRID as AUTO_MAPS_GRID
 from ._build import auto_light_path as auto_light_path

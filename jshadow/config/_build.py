@@ -208,6 +208,13 @@ def _bsv_images(config: Config, occluders: tuple) -> str:
 
 
 AUTO_ENVIRONMENT_LIGHTS = 128  # what environment_lights = "auto" takes for a lat-long map
+# ... over meshes that keep their shape, whose lamp images and visible fractions are made once per
+# shape: against 128, the twisted airplane under the studio map 0.44 -> 0.33 % relative RMSE (max
+# 4.0 -> 2.9 %), the studio bunny 0.60 -> 0.58 % (max 5.2 -> 4.9 %), spot_sunset 0.79 -> 0.78 %,
+# their first frames 101 -> 173, 1424 -> 1621 and 87 -> 158 ms (the paper's 208, 122 and 184 ms),
+# later frames 1 ms either way; 512 lamps gave spot_sunset 0.78 % again at 250 ms (BENCHMARKS.md
+# "The default against the paper", seventh run)
+AUTO_ENVIRONMENT_LIGHTS_STATIC = 256
 # ... over a mesh that deforms, whose lamp images are made every frame (the animated bunny: 1.23 %
 # relative RMSE with 64, 1.26 % with 128, at 1.45x and 1.88x the paper's frame in one run of
 # distinct frames at its 160² plane, margins of 2 pixels then; BENCHMARKS.md "Self-shadowing by
@@ -307,12 +314,12 @@ def auto_light_path(
 
     * a lat-long map (``hdr``) has its bright part split off as K distant lights, each looked up
       in orthographic images of every mesh along its direction, :data:`AUTO_LAMP_IMAGES` pixels
-      wide: K = :data:`AUTO_ENVIRONMENT_LIGHTS` over meshes that keep their shape
+      wide: K = :data:`AUTO_ENVIRONMENT_LIGHTS_STATIC` (256) over meshes that keep their shape
       (:func:`jshadow.entities.shape_is_static`; images made once per shape, and the visible
       fractions too, :class:`jshadow.Renderer`; the untuned twisted airplane under the studio map
-      2.84 → 0.53 % relative RMSE, BENCHMARKS.md "Lamp images"), K =
-      :data:`AUTO_ENVIRONMENT_LIGHTS_DEFORMING` over a mesh that deforms, whose images are made
-      every frame, where :data:`AUTO_ENVIRONMENT_LIGHTS` would cost more than
+      2.84 → 0.53 % relative RMSE with 32 lamps, BENCHMARKS.md "Lamp images", 0.33 % with 256),
+      K = :data:`AUTO_ENVIRONMENT_LIGHTS` (128) over a mesh that deforms, whose images are made
+      every frame, or :data:`AUTO_ENVIRONMENT_LIGHTS_DEFORMING` (64) where 128 would cost more than
       :data:`AUTO_LAMP_TESTS_PER_FACE` pixel tests per face (:func:`lamp_tests_per_face`; the
       animated bunny 23.1 → 0.69 % with its vertices' "maps" below and 64 lamps, at 1.33–1.34× the
       paper's frame at its shipped plane; the bending airplane keeps 128, 0.60 → 0.43 %;
@@ -358,7 +365,7 @@ def auto_light_path(
     applies = shell > 1.0 and bsv_method != "brute" and closed  # faces are concrete
     k = 0
     if hdr and bool(meshes):
-        k = AUTO_ENVIRONMENT_LIGHTS
+        k = AUTO_ENVIRONMENT_LIGHTS_STATIC if static else AUTO_ENVIRONMENT_LIGHTS
         if not static and lamp_tests_per_face(meshes, k, AUTO_LAMP_IMAGES) > AUTO_LAMP_TESTS_PER_FACE:
             k = AUTO_ENVIRONMENT_LIGHTS_DEFORMING
     images = applies and (has_lights or k)

@@ -130,10 +130,11 @@ class MethodConfig(eqx.Module):
     :func:`jshadow.config.build_scene`), and
     ``environment_lights`` "auto" | K (0, or a power of two: the lat-long map's radiance
     above ``environment_threshold`` (default 2) × its mean split off as K distant lights shadowed through the
-    images; :mod:`jshadow.envlights`; "auto", the default: 128 where ``light_visibility = "auto"``
-    takes the images and the environment is a lat-long map — 64 over a mesh that deforms unless
-    128 lamps' images cost at most :data:`jshadow.config.AUTO_LAMP_TESTS_PER_FACE` pixel tests per
-    face — else 0), and ``lamp_images`` "auto" |
+    images; :mod:`jshadow.envlights`; "auto", the default: where ``light_visibility = "auto"``
+    takes the images and the environment is a lat-long map, 256 over meshes that keep their
+    shape, 128 over a mesh that deforms — 64 unless 128 lamps' images cost at most
+    :data:`jshadow.config.AUTO_LAMP_TESTS_PER_FACE` pixel tests per face — else 0), and
+    ``lamp_images`` "auto" |
     R (0, or ≥ 8: those lights looked up in orthographic R × R images of each mesh along their
     directions instead of the shell's images, :mod:`jshadow.visibility._lamps`; "auto", the
     default: 128 where ``environment_lights = "auto"`` takes the lights, else 0), and for

@@ -168,8 +168,8 @@ def settle_ambiguous(
     normals: Float[Array, "V 3"],
     margin: float,
     tile: int = TILE,
-    reach: int = REACH,
-    ahead: float = AHEAD,
+    reach: int | None = None,
+    ahead: float | None = None,
 ) -> Bool[Array, "V K"]:
     """(V, K) whether each vertex's ray toward each lamp of its entry-face ``images`` is blocked
     beyond the near part: the nearest pixel's entry more than ``margin`` pixels ahead of the
@@ -180,7 +180,11 @@ def settle_ambiguous(
     the ray is tested exactly against the entry faces binned into its ``tile``-pixel tile: blocked
     where it enters the mesh anywhere ahead of the origin (as the rays of
     :func:`jshadow.visibility.ray_fan_any_hit` with ``t_min`` the lift find: an entry closer than
-    the lift is followed by an exit beyond it, in a closed mesh). See the module docstring."""
+    the lift is followed by an exit beyond it, in a closed mesh). ``reach`` and ``ahead`` default
+    to the module's :data:`REACH` and :data:`AHEAD` as they are at the call. See the module
+    docstring."""
+    reach = REACH if reach is None else reach
+    ahead = AHEAD if ahead is None else ahead
     k = images.front.shape[0]
     far, amb, q, qtile, number, tiles, large, bounds, proj = _ambiguous(
         images,
