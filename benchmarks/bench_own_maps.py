@@ -1,5 +1,6 @@
-"""Fresh frames of a deforming config: the default, the default without settling the own vertices'
-ambiguous lamp pairs exactly, and the paper's method, in one process.
+"""Fresh frames of a deforming config: the default, the default settling only the pairs whose four
+pixel centres disagree (no slivers), the default without settling the own vertices' ambiguous
+lamp pairs exactly, and the paper's method, in one process.
 
     python benchmarks/bench_own_maps.py [--config configs/bunny_animated.toml] [--frames 16]
         [--blocks 3] [--json out.json]
@@ -23,6 +24,7 @@ import numpy as np
 from bench_render import METHODS  # the same "paper" settings (this folder is on sys.path as a script)
 
 import jshadow.scene as scene_mod
+import jshadow.visibility._own_exact as own_exact
 from jshadow.config import build_scene, config_from_dict
 from jshadow.runner import Renderer
 
@@ -43,24 +45,30 @@ def main() -> None:
         d = {**doc, "method": {**doc.get("method", {}), **extra}}
         return Renderer(build_scene(config_from_dict(d, source=str(path), root=path.parent)))
 
-    settings = {"default": (renderer({}), True), "unsettled": (renderer({}), False)}
-    settings["paper"] = (renderer(METHODS["paper"]), True)
+    # (renderer, settle the ambiguous pairs, pixels searched for slivers beyond the four centres)
+    settings = {
+        "default": (renderer({}), True, own_exact.REACH),
+        "four": (renderer({}), True, 0),
+        "unsettled": (renderer({}), False, 0),
+        "paper": (renderer(METHODS["paper"]), True, own_exact.REACH),
+    }
+    reach = own_exact.REACH
     poses = range(min(args.frames, max(settings["default"][0].scene.n_frames, 1)))
     t0 = time.perf_counter()
-    for rend, settle in settings.values():  # every pose's shapes compiled first
-        scene_mod.MAPS_EXACT_AMBIGUOUS = settle
+    for rend, settle, sliver in settings.values():  # every pose's shapes compiled first
+        scene_mod.MAPS_EXACT_AMBIGUOUS, own_exact.REACH = settle, sliver
         for f in poses:
             scene_mod.clear_pose_caches()
             rend.frame(f)
     compile_s = time.perf_counter() - t0
     rows: dict[str, list[dict]] = {k: [] for k in settings}
     for _ in range(args.blocks):
-        for name, (rend, settle) in settings.items():
-            scene_mod.MAPS_EXACT_AMBIGUOUS = settle
+        for name, (rend, settle, sliver) in settings.items():
+            scene_mod.MAPS_EXACT_AMBIGUOUS, own_exact.REACH = settle, sliver
             for f in poses:
                 scene_mod.clear_pose_caches()
                 rows[name].append(rend.frame(f)[1])
-    scene_mod.MAPS_EXACT_AMBIGUOUS = True
+    scene_mod.MAPS_EXACT_AMBIGUOUS, own_exact.REACH = True, reach
     out = {
         "config": str(path),
         "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),

@@ -444,7 +444,7 @@ def build_scene(config: Config) -> Scene:
     * ``[method] light_visibility``, ``environment_lights``, ``self_visibility``, ``directions``,
       ``light_cap`` and ``lamp_images`` = "auto" (the defaults) shadow sphere lights through the
       occlusion images, and the lamps of a lat-long map over meshes that keep their shape through
-      orthographic lamp images (128 distant lights), where they apply and no ``[fit]`` is given,
+      orthographic lamp images (256 distant lights), where they apply and no ``[fit]`` is given,
       else through the n-band path; the own vertices of meshes that keep their shape get their
       transfer cast by rays (:func:`auto_light_path`, :func:`_light_path`).
 

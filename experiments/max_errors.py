@@ -1,0 +1,289 @@
+"""Where the default's largest errors come from, on the four scenes whose max error exceeds 5 %.
+
+The default meets ≤ 1 % relative RMSE on every scene of ``experiments/defaults.py`` but not ≤ 5 %
+max error on four. This script measures what limits those maxima:
+
+* ``worst``: for each of the four, the default's ten largest errors against the cached Monte Carlo
+  reference (``experiments/results/refs/``), each with where it is (plane or own vertex), the
+  reference's value and standard error there, and the count of receivers over 5 %;
+* ``transfer``: the bending spot cow under a sky (``spot_self_sky_bend_last``, its last frame), the
+  own vertices' shadowed diffuse transfer under the scene's sky against a fine reference transfer
+  (exact rays over a 32 × 128 hemisphere grid about each vertex normal,
+  :func:`jshadow.visibility.vertex_visibility_sh`): from the default's entry-face images over its
+  12 × 24 sphere grid (:func:`jshadow.visibility.vertex_transfer_maps`), from exact rays over sphere
+  grids of 12 × 24, 16 × 32 and 24 × 48 (the same directions for every vertex, as images need), from
+  a 288-point Fibonacci sphere, from exact rays over a 12 × 48 hemisphere grid (the static meshes'
+  ``self_visibility = "rays"``), and from the 12 × 24 grid with its *boundary* cells (whose
+  visibility differs from a neighbour's, with n·ω > 0.25) split into 2 × 2 exact sub-directions;
+* ``lamps``: the animated bunny's plane with the lamps' visibility by exact rays (point lamps, no
+  images) at 64, 256 and 1024 lamps, and at 1024 with the map split at 0.1 × its mean (nearly all
+  of the map in lamps), through :class:`jshadow.Renderer` with
+  ``jshadow.scene.lamp_visibility`` replaced for the run.
+
+Usage (repository root, project environment active)::
+
+    python experiments/max_errors.py [--parts worst transfer lamps]
+
+Writes ``experiments/results/max_errors.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import pathlib
+import sys
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from numpy.polynomial.legendre import leggauss
+
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
+import defaults  # noqa: E402
+import light_field  # noqa: E402
+import models  # noqa: E402
+from _common import git_state  # noqa: E402
+
+import jshadow.scene as scene_mod  # noqa: E402
+from jshadow.entities import frame_time, receivers_at  # noqa: E402
+from jshadow.geometry import vertex_normals  # noqa: E402
+from jshadow.lights import environment_sh  # noqa: E402
+from jshadow.sh import clamped_cosine, sh_basis, sphere_grid  # noqa: E402
+from jshadow.visibility import (  # noqa: E402
+    ray_fan_any_hit,
+    ring_faces,
+    vertex_transfer_maps,
+    vertex_visibility_sh,
+)
+
+OUT = pathlib.Path(__file__).resolve().parent / "results" / "max_errors.json"
+SCENES = ["bunny_studio", "bunny_animated_last", "spot_self_sky_bend_last", "bunny_self_sky_bend_last"]
+RES = 32  # the plane's receivers per side, as experiments/defaults.py
+BANDS = 5  # the transfer's bands (the default's n + 1)
+
+
+def _default_scene(name: str, over: dict | None = None):
+    build, frame, sphere_path, _ = light_field._cases()[name]
+    nband = dict(models.VARIANTS[models.DEFAULT_VARIANT])
+    base = build(nband, RES)
+    ref = models.reference(name, build(models.VARIANTS["paper"], RES), frame, 1e-3, 32768)
+    scene = build({**nband, **defaults.auto_keys(base), **(over or {})}, RES)
+    return scene, frame, sphere_path, ref, int(np.prod(base.receivers.grid_shape))
+
+
+def worst(name: str, top: int = 10) -> dict:
+    """The default's largest errors on one case, each with where and how noisy the reference is."""
+    scene, frame, sphere_path, ref, n_plane = _default_scene(name)
+    approx, _, _ = models.timed(scene, frame, sphere_path, 1)
+    mean = float(np.mean(ref["mean"]))
+    diff = (approx - ref["mean"]) / mean  # (N, 3)
+    channel = np.argmax(np.abs(diff), axis=1)
+    rows = np.arange(diff.shape[0])
+    err = diff[rows, channel]
+    pts, nrm = (np.asarray(x) for x in receivers_at(scene, frame))
+    out = []
+    for i in np.argsort(-np.abs(err))[:top]:
+        c = channel[i]
+        out.append(
+            {
+                "receiver": int(i),
+                "where": "plane" if i < n_plane else "vertex",
+                "err_pct": round(100 * float(err[i]), 2),
+                "ref_over_mean": round(float(ref["mean"][i, c]) / mean, 3),
+                "ref_stderr_pct": round(100 * float(ref["stderr"][i, c]) / mean, 2),
+                "point": np.round(pts[i], 3).tolist(),
+                "normal": np.round(nrm[i], 2).tolist(),
+            }
+        )
+    over5 = np.abs(err) > 0.05
+    return {
+        "largest": out,
+        "over_5pct_plane": int(over5[:n_plane].sum()),
+        "over_5pct_vertices": int(over5[n_plane:].sum()),
+    }
+
+
+def _pose(name: str):
+    scene, frame, _, _, _ = _default_scene(name)
+    occ = scene.occluders[0]
+    t = jnp.float32(frame_time(frame, scene.n_frames))
+    v = np.asarray(scene_mod._vertices_at(occ, t))
+    return scene, v, np.asarray(occ.faces), float(scene_mod._concrete_lift(scene, t))
+
+
+def _cells(nt: int, nph: int, sub: int) -> np.ndarray:
+    """(nt·nph, sub², 3): each cell of the Gauss–Legendre × uniform sphere grid cut into sub × sub
+    parts of equal solid angle (equal steps in z between the rule's weight boundaries, and in φ)."""
+    _, wl = leggauss(nt)
+    edges = np.concatenate([[1.0], 1.0 - np.cumsum(wl[::-1])])  # z from the pole down, as the grid
+    edges[-1] = -1.0
+    dphi = 2 * np.pi / nph
+    out = np.zeros((nt, nph, sub * sub, 3))
+    for i in range(nt):
+        for a in range(sub):
+            z = edges[i] + (edges[i + 1] - edges[i]) * (a + 0.5) / sub
+            r = np.sqrt(max(0.0, 1 - z * z))
+            for j in range(nph):
+                for b in range(sub):
+                    ph = (j + (b + 0.5) / sub) * dphi
+                    out[i, j, a * sub + b] = [r * np.cos(ph), r * np.sin(ph), z]
+    return out.reshape(nt * nph, sub * sub, 3)
+
+
+def transfer(name: str = "spot_self_sky_bend_last") -> dict:
+    """The own vertices' transfer under the scene's sky, quadrature by quadrature (see the module
+    docstring); relative RMSE and max of the irradiance against the fine hemisphere grid."""
+    scene, v, f, lift = _pose(name)
+    light = np.asarray(environment_sh(scene.environment, BANDS))  # (n², 3)
+    vj, fj = jnp.asarray(v), jnp.asarray(f)
+    nrm = np.asarray(vertex_normals(vj, fj))
+    origins = jnp.asarray(v + lift * nrm)
+    exact_cos = np.asarray(clamped_cosine(jnp.asarray(nrm), BANDS))
+
+    def visible(dirs):  # (V, D) or shared (D, 3) directions
+        hit = ray_fan_any_hit(origins, jnp.asarray(dirs, jnp.float32), vj, fj, t_min=lift)
+        return 1.0 - np.asarray(hit, np.float64)
+
+    t0 = time.perf_counter()
+    fine = np.asarray(vertex_visibility_sh(v, f, BANDS, (32, 128), True, lift, True))
+    fine_e = fine @ light
+    mean = float(fine_e.mean())
+    out = {"vertices": int(v.shape[0]), "fine_s": time.perf_counter() - t0, "quadratures": {}}
+
+    def record(label, coeffs, directions):
+        d = (coeffs @ light - fine_e) / mean
+        a = np.abs(d).max(1)
+        out["quadratures"][label] = {
+            "directions_per_vertex": directions,
+            "rel_rmse_pct": 100 * float(np.sqrt(np.mean(d**2))),
+            "max_rel_err_pct": 100 * float(a.max()),
+            "vertices_over_5pct": int((a > 0.05).sum()),
+        }
+        print(
+            f"  {label:44s} rmse {out['quadratures'][label]['rel_rmse_pct']:.2f} %  max {100 * a.max():.2f} %"
+        )
+
+    grid = tuple(scene.method.self_maps_grid)
+    res = scene.method.self_maps_resolution
+    local = ring_faces(f, v.shape[0], scene_mod.MAPS_RINGS)
+    maps = vertex_transfer_maps(v, f, BANDS, local, lift, grid, res, scene_mod.MAPS_TRANSFER_MARGIN)
+    record(f"images {grid[0]} x {grid[1]} at {res}² (the default)", np.asarray(maps), grid[0] * grid[1])
+    for g in ((12, 24), (16, 32), (24, 48)):
+        exact = vertex_visibility_sh(v, f, BANDS, g, False, lift, True)
+        record(f"exact rays, sphere grid {g[0]} x {g[1]}", np.asarray(exact), g[0] * g[1])
+    n = 288
+    k = np.arange(n) + 0.5
+    z = 1 - 2 * k / n
+    ph = np.pi * (1 + 5**0.5) * k
+    fib = np.stack([np.sqrt(1 - z * z) * np.cos(ph), np.sqrt(1 - z * z) * np.sin(ph), z], 1)
+    occluded = (1 - visible(fib)) * np.maximum(nrm @ fib.T, 0) * (4 * np.pi / n)
+    record(
+        "exact rays, 288 Fibonacci directions",
+        exact_cos - occluded @ np.asarray(sh_basis(jnp.asarray(fib), BANDS)),
+        n,
+    )
+    hemi = vertex_visibility_sh(v, f, BANDS, (12, 48), True, lift, True)
+    record("exact rays, hemisphere grid 12 x 48", np.asarray(hemi), 576)
+    # the 12 x 24 grid with its boundary cells split into 2 x 2 exact sub-directions
+    d0, w0 = (np.asarray(x, np.float64) for x in sphere_grid(12, 24))
+    vis0 = visible(d0)
+    cos0 = np.maximum(nrm @ d0.T, 0)
+    y0 = np.asarray(sh_basis(jnp.asarray(d0, jnp.float32), BANDS), np.float64)
+    g = vis0.reshape(-1, 12, 24)
+    edge = (g != np.roll(g, 1, 2)) | (g != np.roll(g, -1, 2))
+    edge[:, 1:] |= g[:, 1:] != g[:, :-1]
+    edge[:, :-1] |= g[:, :-1] != g[:, 1:]
+    chosen = edge.reshape(g.shape[0], -1) & (cos0 > 0.25)
+    sub = _cells(12, 24, 2)  # (288, 4, 3)
+    iv, ic = np.nonzero(chosen)
+    sub_vis = 1.0 - np.asarray(
+        ray_fan_any_hit(origins[iv], jnp.asarray(sub[ic], jnp.float32), vj, fj, t_min=lift), np.float64
+    )  # (P, 4)
+    sub_cos = np.maximum(np.einsum("pk,psk->ps", nrm[iv], sub[ic]), 0)
+    sub_y = np.asarray(sh_basis(jnp.asarray(sub[ic].reshape(-1, 3), jnp.float32), BANDS)).reshape(
+        len(iv), 4, -1
+    )
+    occ_cells = ((1 - vis0) * cos0 * w0)[:, :, None] * y0[None]  # (V, 288, n²)
+    occ_cells[iv, ic] = np.einsum("ps,ps,psk->pk", 1 - sub_vis, sub_cos, sub_y) * (w0[ic] / 4)[:, None]
+    record(
+        f"exact 12 x 24, boundary cells (n·ω > 0.25) 2 x 2 ({chosen.sum() / (cos0 > 0).sum():.0%} of cells)",
+        exact_cos - occ_cells.sum(1),
+        288,
+    )
+    return out
+
+
+def lamps(name: str = "bunny_animated_last") -> dict:
+    """The plane's errors with the lamps' visibility by exact rays (point lamps, no images)."""
+    _, v, f, _ = _pose(name)
+    vj, fj = jnp.asarray(v), jnp.asarray(f)
+
+    def exact(images, points, lamps=slice(None)):
+        d = images.directions[lamps].astype(points.dtype)
+        return 1.0 - ray_fan_any_hit(points, d, vj, fj, t_min=1e-4).astype(points.dtype)
+
+    out = {}
+    for label, over, patched in (
+        ("images (the default)", {}, False),
+        ("exact, 64 lamps", {}, True),
+        ("exact, 256 lamps", {"environment_lights": 256}, True),
+        ("exact, 1024 lamps", {"environment_lights": 1024}, True),
+        (
+            "exact, 1024 lamps, split at 0.1 x mean",
+            {"environment_lights": 1024, "environment_threshold": 0.1},
+            True,
+        ),
+    ):
+        scene, frame, sphere_path, ref, n_plane = _default_scene(name, over)
+        jax.clear_caches()  # the renderer's jitted stages look the lamp lookup up when traced
+        original = scene_mod.lamp_visibility
+        scene_mod.lamp_visibility = exact if patched else original
+        try:
+            approx, _, _ = models.timed(scene, frame, sphere_path, 1)
+        finally:
+            scene_mod.lamp_visibility = original
+        e = models.errors(approx, ref, n_plane)
+        mean = float(np.mean(ref["mean"]))
+        err = np.abs(approx - ref["mean"]).max(1)[:n_plane] / mean
+        out[label] = {
+            "plane_rel_rmse_pct": e["plane_rel_rmse_pct"],
+            "max_rel_err_pct": e["max_rel_err_pct"],
+            "plane_largest": [[int(i), round(100 * float(err[i]), 2)] for i in np.argsort(-err)[:4]],
+        }
+        print(
+            f"  {label:40s} plane rmse {e['plane_rel_rmse_pct']:.2f} %",
+            f"largest on the plane {out[label]['plane_largest']}",
+        )
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--parts", nargs="+", default=["worst", "transfer", "lamps"])
+    args = ap.parse_args()
+    result = json.loads(OUT.read_text()) if OUT.exists() else {}
+    result.update({"git": git_state(), "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())})
+    if "worst" in args.parts:
+        result["worst"] = {}
+        for name in SCENES:
+            result["worst"][name] = worst(name)
+            w = result["worst"][name]
+            top = ", ".join(f"{x['where']} {x['err_pct']:+.1f}" for x in w["largest"][:4])
+            print(
+                f"{name}: {top}; over 5 %: plane {w['over_5pct_plane']}, vertices {w['over_5pct_vertices']}"
+            )
+    if "transfer" in args.parts:
+        print("transfer of spot_self_sky_bend_last's own vertices under its sky:")
+        result["transfer"] = transfer()
+    if "lamps" in args.parts:
+        print("the animated bunny's plane with exact lamp visibility:")
+        result["lamps"] = lamps()
+    OUT.parent.mkdir(parents=True, exist_ok=True)
+    OUT.write_text(json.dumps(result, indent=1))
+    print(f"wrote {OUT}")
+
+
+if __name__ == "__main__":
+    main()
