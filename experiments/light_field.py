@@ -120,6 +120,16 @@ def _airplane_studio_bend(method: dict, res: int):
     return models._scene(method, occ, env=env, res=res, n_frames=2)
 
 
+def _bunny_studio_low(method: dict, res: int):
+    """Untuned for receivers within a mesh's bounding sphere: the bunny 0.05 above the plane (its
+    bounding sphere, radius 0.9, meets the plane in a disc 1.1 across), under the studio map
+    turned by 2 rad about +y, the plane its only receiver."""
+    path = models.ASSETS / "envmaps" / "studio_small_03_512x256.hdr"
+    image = rotate_latlong_y(jnp.asarray(read_latlong(path), jnp.float32), 2.0)
+    env = Environment(radiance=jnp.ones(3, jnp.float32), image=image, kind="hdr")
+    return models._scene(method, [models._mesh("bunny.obj", (0, 0.715, 0), 0.9)], env=env, res=res)
+
+
 def _spot_self_sky_bend(method: dict, res: int):
     """Untuned for a deforming mesh's self-shadowing: the spot cow bending over its animation (bend
     0 → 0.7 about y toward z), its last frame, under a sky, its 2930 own vertices among the
@@ -143,6 +153,7 @@ def _bunny_self_sky_bend(method: dict, res: int):
 def _cases():
     cases = dict(models._cases())
     cases["airplane_studio_twist"] = (_airplane_studio_twist, 0, "analytic", False)
+    cases["bunny_studio_low"] = (_bunny_studio_low, 0, "analytic", False)
     cases["airplane_studio_bend_last"] = (_airplane_studio_bend, 1, "analytic", False)
     cases["spot_self_sky_bend_last"] = (_spot_self_sky_bend, 1, "analytic", False)
     cases["bunny_self_sky_bend_last"] = (_bunny_self_sky_bend, 1, "analytic", False)

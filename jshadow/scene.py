@@ -1161,11 +1161,14 @@ def environment_visible_fraction(
     differentiating a sphere occluder raises :data:`LIGHT_IMAGES_NO_DERIVATIVE`.
 
     Returns ``(F, inside)``: ``inside`` (N,) bool marks receivers within a mesh occluder's bounding
-    sphere — its own vertices with ``self_shadow`` —, whose rays the images cannot resolve (the
-    line through such a receiver meets the mesh behind it too); :func:`combine` shades their bright
-    part through the n-band path instead (in a throwaway trial on the bunny's own vertices under
-    the studio map, not kept: 55 % relative RMSE through the lookups, 24 % through the n-band
-    path). With ``self_visibility = "rays"`` or "light_rays", ``own`` (from
+    sphere whose rays its images cannot resolve: for the shell's images every such receiver (the
+    line through it meets the mesh behind it too); for lamp images, whose depth settles any
+    receiver off the mesh (:func:`jshadow.visibility.lamp_visibility`), only its own vertices with
+    ``self_shadow`` where they have no rows in ``own`` (before 2026-12-07 every receiver within
+    the sphere, so a plane under a low mesh took the n-band path there). :func:`combine` shades
+    their bright part through the n-band path instead (in a throwaway trial on the bunny's own
+    vertices under the studio map, not kept: 55 % relative RMSE through the shell's lookups, 24 %
+    through the n-band path). With ``self_visibility = "rays"`` or "light_rays", ``own`` (from
     :func:`own_rows_at_time`, or a piece of it) holds the own vertices' exact visibility toward
     the lights in its third item: it replaces their own occluder's lookup, and they are not
     ``inside`` for it.
@@ -1237,10 +1240,13 @@ def environment_visible_fraction(
 
     inside = jnp.zeros(points.shape[:1], bool)
     for i, img in enumerate(images):
-        if img is not None:
-            c, r = jax.lax.stop_gradient((img.center, img.radius))
-            near = jnp.sum((jax.lax.stop_gradient(points) - c) ** 2, -1) < (r * _INSIDE) ** 2
-            inside = inside | (near if owners is None else near & (owners != i))
+        if img is None:
+            continue
+        if img.lamps is not None and (owners is not None or not scene.self_shadow):
+            continue  # its lamp images resolve any receiver off its surface, its own have their rows
+        c, r = jax.lax.stop_gradient((img.center, img.radius))
+        near = jnp.sum((jax.lax.stop_gradient(points) - c) ** 2, -1) < (r * _INSIDE) ** 2
+        inside = inside | (near if owners is None else near & (owners != i))
     vis, cos = forward(geometry, inside)
     energy = lights.energy.astype(points.dtype)  # (K, 3)
     den = cos @ energy

@@ -1,5 +1,6 @@
 """Orthographic lamp images (jshadow.visibility._lamps): coverage against orthographic rays, lookups
-against exact rays, their bilinear interpolation of the coverage, the size groups against one window
+against exact rays (from outside the bounding sphere and from within it, off the mesh), their
+bilinear interpolation of the coverage, the size groups against one window
 for all, the renderer's use of them."""
 
 import jax
@@ -65,6 +66,44 @@ def test_lookups_from_outside_match_exact_rays_but_at_the_silhouette(mesh, rng):
     assert np.all((vis >= 0) & (vis <= 1)) and np.mean((vis > 0) & (vis < 1)) < 0.05  # soft at edges only
     np.testing.assert_array_equal(np.asarray(lamp_visibility(img, p, slice(4, 12))), vis[:, 4:12])
     np.testing.assert_allclose(np.asarray(jax.jit(lamp_visibility)(img, p)), vis, atol=1e-5)
+
+
+@pytest.mark.parametrize("entry_only", [False, True])
+def test_lookups_inside_the_bounding_sphere_match_exact_rays(mesh, rng, entry_only):
+    """Points within the bounding sphere but off the mesh (the vertices pushed 0.05 along their
+    normals: between the ears, beside the body): the depth test is the exact any-hit up to rays
+    within a pixel of the silhouette, where the coverage alone (a face anywhere on the line) is
+    wrong for the many rays whose line meets the mesh only behind the point."""
+    from jshadow.geometry import vertex_normals
+
+    v, f = mesh
+    d = jnp.asarray(random_dirs(rng, (16,)), jnp.float32)
+    img = lamp_images(v, f, d, 96, entry_only=entry_only)
+    p = v + 0.05 * vertex_normals(v, f)
+    p = p[np.linalg.norm(np.asarray(p - img.center), axis=1) < float(img.radius)]
+    assert p.shape[0] > 300
+    vis = np.asarray(lamp_visibility(img, p))
+    exact = ~np.asarray(ray_fan_any_hit(p, jnp.broadcast_to(d, (p.shape[0], *d.shape)), v, f))
+    assert 0.1 < 1 - exact.mean() < 0.7
+    assert np.mean(np.abs(vis - exact)) < 0.02
+    coverage_only = 1.0 - _bilinear_coverage(img, p)
+    assert np.mean(np.abs(coverage_only - exact)) > 0.2  # what the depth test mends
+
+
+def _bilinear_coverage(img, p):
+    u, w, _, _ = (np.asarray(x) for x in image_coords(img, p))
+    cov = np.asarray(img.covered).astype(float)
+    res = cov.shape[-1]
+    j0, i0 = np.floor(u).astype(int), np.floor(w).astype(int)
+    fx, fy = u - j0, w - i0
+    kk = np.arange(cov.shape[0])[None, :]
+
+    def at(i, j):
+        ok = (i >= 0) & (i < res) & (j >= 0) & (j < res)
+        return cov[kk, np.clip(i, 0, res - 1), np.clip(j, 0, res - 1)] * ok
+
+    top = (1 - fx) * at(i0, j0) + fx * at(i0, j0 + 1)
+    return (1 - fy) * top + fy * ((1 - fx) * at(i0 + 1, j0) + fx * at(i0 + 1, j0 + 1))
 
 
 def test_lookups_interpolate_the_coverage_bilinearly(mesh):
