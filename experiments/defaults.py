@@ -76,6 +76,7 @@ CASES = [
     "bunny_self_sky_twist",
     "airplane_studio_twist",
     "bunny_studio_low",
+    "spot_light_low",
     # untuned, deforming: a map's lamps in images made every frame, a mesh's own vertices by "maps"
     "airplane_studio_bend_last",
     "spot_self_sky_bend_last",

@@ -130,6 +130,15 @@ def _bunny_studio_low(method: dict, res: int):
     return models._scene(method, [models._mesh("bunny.obj", (0, 0.715, 0), 0.9)], env=env, res=res)
 
 
+def _spot_light_low(method: dict, res: int):
+    """Untuned for receivers within a mesh's bounding sphere under a sphere light: the spot cow of
+    ``spot_sky_light`` lowered to 0.05 above the plane (its bounding sphere, radius 0.7, meets the
+    plane in a disc 0.7 across), the same sphere light and sky."""
+    occ = [models._mesh("spot.obj", (0.2, 0.6, -0.1), 0.7)]
+    sky = models._sky("sky", (0.6, 0.7, 0.9))
+    return models._scene(method, occ, [models._sphere_light()], env=sky, res=res)
+
+
 def _spot_self_sky_bend(method: dict, res: int):
     """Untuned for a deforming mesh's self-shadowing: the spot cow bending over its animation (bend
     0 → 0.7 about y toward z), its last frame, under a sky, its 2930 own vertices among the
@@ -154,6 +163,7 @@ def _cases():
     cases = dict(models._cases())
     cases["airplane_studio_twist"] = (_airplane_studio_twist, 0, "analytic", False)
     cases["bunny_studio_low"] = (_bunny_studio_low, 0, "analytic", False)
+    cases["spot_light_low"] = (_spot_light_low, 0, "analytic", False)
     cases["airplane_studio_bend_last"] = (_airplane_studio_bend, 1, "analytic", False)
     cases["spot_self_sky_bend_last"] = (_spot_self_sky_bend, 1, "analytic", False)
     cases["bunny_self_sky_bend_last"] = (_bunny_self_sky_bend, 1, "analytic", False)
