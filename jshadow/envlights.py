@@ -35,7 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from .entities import Environment
+from .entities import Environment, Method
 from .lights import IrradianceMap, _np_latlong_dirs, environment_irradiance_map
 
 __all__ = ["EnvironmentLights", "split_environment", "median_cut", "MAX_FAN"]
@@ -123,7 +123,7 @@ def _cut(w: np.ndarray, r0: int, r1: int, c0: int, c1: int):
 
 
 def split_environment(
-    env: Environment, count: int, threshold: float = 2.0
+    env: Environment, count: int, threshold: float = Method.environment_threshold
 ) -> tuple[Environment, EnvironmentLights]:
     """Split a lat-long environment into a clamped rest and ``count`` distant lights (module docstring).
 
@@ -133,7 +133,8 @@ def split_environment(
         count: K, the number of lights (a power of two); fans of ``min(K, MAX_FAN)`` lights.
         threshold: τ over the map's mean luminance (solid-angle weighted; luminance = the mean of
             the three channels, before ``env.radiance``); the excess of each pixel over τ, with its
-            colour, is the bright part. Must be > 0.
+            colour, is the bright part. Must be > 0. Default: the scene method's default
+            (:attr:`jshadow.entities.Method.environment_threshold`, 2).
 
     Returns:
         ``(rest, lights)``: the rest as an "hdr" Environment of the same size and radiance, and the

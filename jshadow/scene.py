@@ -606,7 +606,8 @@ MAPS_MARGIN = 3.0  # pixels: entries in the images closer ahead of a vertex are 
 # the lamps' (vertex, lamp) pairs whose four pixel centres disagree, or that pass a sliver, tested
 # exactly (jshadow.visibility.settle_ambiguous): the animated bunny 1.03 -> 0.94 % (map split at 4 x
 # its mean, the four centres alone) for 20 ms per frame (benchmarks/bench_own_maps.py); the slivers
-# took its vertices' largest error 9.0 -> 6.5 % (map split at 2) for 4 ms more
+# took its vertices' largest error 9.0 -> 6.5 % (map split at 2) for 7 ms more a frame (170.1 ->
+# 177.4 ms in bench_own_maps.py; 4 ms of the settling alone)
 MAPS_EXACT_AMBIGUOUS = True
 # pixels of the transfer's images (the bending spot cow under a sky: 1.5 -> 0.5 took it 3.04 -> 2.07 %)
 MAPS_TRANSFER_MARGIN = 0.5

@@ -28,8 +28,9 @@ for 20 ms more per frame at the shipped 160² plane (174.0 against 154.3 ms, the
 ``python benchmarks/bench_own_maps.py``). With the split at 2 × its mean (the default) the four
 centres left 0.245 % RMS (largest 8.6 %: ten wrong pairs, slivers all but two); the slivers
 (``reach`` 2, ``ahead`` 6) take it to 0.008 % (largest 0.35 %; 0.36 → 0.17 %, largest 10.4 → 5.7 %
-at its tenth frame), the vertices' largest render error 9.0 → 6.5 % of their mean, for 4 ms
-(16.3 → 20.4 ms alone). Not used for the
+at its tenth frame), the vertices' largest render error 9.0 → 6.5 % of their mean, the settling
+16.3 → 20.4 ms alone and the shipped frame 170.1 → 177.4 ms (``bench_own_maps.py``'s "four" and
+"default"). Not used for the
 transfer's sphere grid: 288 directions over the spot cow's 2930 vertices (3.5 % of the pairs
 ambiguous) took its frame from 216 to 382 ms for 1.03 → 0.95 %.
 
@@ -48,20 +49,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
-from ._lamps import LampImages, _orientation, _padded_count, image_coords
+from ._lamps import LampImages, _front_at, _orientation, _padded_count, image_coords
 
 __all__ = ["settle_ambiguous"]
-
-
-def entry_ahead(images: LampImages, i, j, threshold):
-    """(N, K) whether pixel (i, j) of each lamp's entry-face image (integer (N, K) indices)
-    holds an entry deeper than ``threshold`` (world units along the lamp, (N, K)); False outside
-    the image."""
-    k, res = images.front.shape[0], images.front.shape[-1]
-    inside = (i >= 0) & (i < res) & (j >= 0) & (j < res)
-    flat = (jnp.arange(k, dtype=jnp.int32) * (res * res))[None, :] + jnp.clip(i, 0, res - 1) * res
-    front = images.front.reshape(-1)[flat + jnp.clip(j, 0, res - 1)].astype(threshold.dtype)
-    return inside & (front > threshold)
 
 
 # pixels per side of the bins of faces: the same answers at any size; the animated bunny's 64 lamps
@@ -87,7 +77,7 @@ def _ambiguous(images: LampImages, vertices, faces, origins, normals, margin, ti
     j0, i0 = ju.astype(jnp.int32), iw.astype(jnp.int32)
 
     def far_at(i, j):  # an entry more than the margin ahead in pixel (i, j), False outside
-        return entry_ahead(images, i, j, thr)
+        return _front_at(images, i, j) > thr
 
     f00, f01, f10, f11 = far_at(i0, j0), far_at(i0, j0 + 1), far_at(i0 + 1, j0), far_at(i0 + 1, j0 + 1)
     right, down = u - ju >= 0.5, w - iw >= 0.5  # the nearest of the four centres
@@ -98,8 +88,8 @@ def _ambiguous(images: LampImages, vertices, faces, origins, normals, margin, ti
     for a in range(-reach, reach + 2):
         for b in range(-reach, reach + 2):
             if not (0 <= a <= 1 and 0 <= b <= 1):
-                i, j = i0 + a, j0 + b
-                sliver = sliver | (entry_ahead(images, i, j, thr) & ~entry_ahead(images, i, j, near))
+                front = _front_at(images, i0 + a, j0 + b)
+                sliver = sliver | ((front > thr) & (front <= near))
     amb = ((anyf != allf) | (sliver & ~allf)) & (normals @ images.directions.T.astype(normals.dtype) > 0)
 
     nt = -(-res // tile)

@@ -71,8 +71,8 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from ..geometry import vertex_normals
 from ..sh import clamped_cosine, sh_basis, sphere_grid
-from ._lamps import LampImages, image_coords, lamp_images
-from ._own_exact import entry_ahead, settle_ambiguous
+from ._lamps import LampImages, _front_at, image_coords, lamp_images
+from ._own_exact import settle_ambiguous
 
 __all__ = ["ring_faces", "near_any_hit", "vertex_lamp_visibility", "vertex_transfer_maps"]
 
@@ -145,7 +145,7 @@ def _far_hits(images: LampImages, origins, margin):
     u, w, z, pixel = image_coords(images, origins)
     j = jnp.floor(u + 0.5).astype(jnp.int32)  # the nearest pixel centre
     i = jnp.floor(w + 0.5).astype(jnp.int32)
-    return entry_ahead(images, i, j, z + margin * pixel)
+    return _front_at(images, i, j) > z + margin * pixel
 
 
 def vertex_lamp_visibility(
