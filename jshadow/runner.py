@@ -57,6 +57,7 @@ from .scene import (
     bsv_input_vertices,
     casts_own_sh,
     combine,
+    contact_rows_at_time,
     image_fractions,
     occluder_bsv,
     occluder_bsv_and_images,
@@ -69,6 +70,7 @@ from .scene import (
     scene_lighting,
     self_visibility_owners,
     shared_normal_count,
+    uses_contact,
     uses_light_images,
     uses_self_rays,
     uses_visibility_chain,
@@ -86,8 +88,8 @@ def _receivers(scene, t):
 
 
 @eqx.filter_jit
-def _fields(scene, bsvs, points, own=None):
-    vis, dist = occluder_visibilities(scene, bsvs, points, own)
+def _fields(scene, bsvs, points, own=None, contact=None):
+    vis, dist = occluder_visibilities(scene, bsvs, points, own, contact=contact)
     # one (m, N, n²) array across the jit boundary, not m separate ones (measured with 16 occluders,
     # when the product chain stacked them again: combination 49 -> 44 ms, BENCHMARKS.md)
     return (jnp.stack(vis), jnp.stack(dist)) if vis else (vis, dist)
@@ -106,15 +108,17 @@ def _combine_piece(
     own=None,
     env_visibility=None,
     fractions=None,
+    contact=None,
 ):
     """Combination of one piece (``images``: the occluders' occlusion images with
     ``light_visibility = "images"``, else None; ``own``: the piece's rows of the ray-cast
     own-vertex visibility; see :func:`jshadow.scene.image_fractions`; ``env_visibility``: see
     :func:`jshadow.scene.combine`; ``fractions``: the pair :func:`jshadow.scene.image_fractions`
-    returns for these receivers, made beforehand, in place of computing it from ``images``)."""
+    returns for these receivers, made beforehand, in place of computing it from ``images``;
+    ``contact``: the piece's rows of :func:`jshadow.scene.contact_rows_at_time`, or None)."""
     vis, dist = list(vis), list(dist)  # (m, ...) arrays or empty lists -> lists of m arrays
     if fractions is None:
-        fractions = image_fractions(scene, images, lighting, points, normals, own)
+        fractions = image_fractions(scene, images, lighting, points, normals, own, contact)
     fractions, env_fraction = fractions
     e = combine(
         scene,
@@ -148,18 +152,19 @@ def _shade_piece(
     own=None,
     images=None,
     fractions=None,
+    contact=None,
 ):
     """Field evaluation and combination of one piece of receivers, traced together (``own``: the
     piece's rows of the ray-cast own-vertex visibility, see :func:`jshadow.scene.occluder_visibilities`;
-    ``images``, ``fractions``: see :func:`_combine_piece`). Where only the product of the
-    visibilities is needed (:func:`jshadow.scene.uses_visibility_chain`), each is multiplied in as
-    soon as it is made (:func:`jshadow.scene.visibility_chain`)."""
-    if fractions is None and uses_visibility_chain(scene, own, images, lighting):
+    ``images``, ``fractions``, ``contact``: see :func:`_combine_piece`). Where only the product of
+    the visibilities is needed (:func:`jshadow.scene.uses_visibility_chain`), each is multiplied in
+    as soon as it is made (:func:`jshadow.scene.visibility_chain`)."""
+    if fractions is None and uses_visibility_chain(scene, own, images, lighting, contact):
         chain = visibility_chain(scene, bsvs, points)
         return _combine_piece(
             scene, points, normals, [], [], lighting, analytic_spheres, shared_normal, images, own, chain
         )
-    vis, dist = occluder_visibilities(scene, bsvs, points, own)
+    vis, dist = occluder_visibilities(scene, bsvs, points, own, contact=contact)
     return _combine_piece(
         scene,
         points,
@@ -172,6 +177,7 @@ def _shade_piece(
         images,
         own,
         fractions=fractions,
+        contact=contact,
     )
 
 
@@ -179,7 +185,16 @@ _shade = eqx.filter_jit(_shade_piece)
 
 
 def _place_and_shade_frame(
-    scene, bsvs, t, lighting, analytic_spheres, shared_normal, own=None, images=None, fractions=None
+    scene,
+    bsvs,
+    t,
+    lighting,
+    analytic_spheres,
+    shared_normal,
+    own=None,
+    images=None,
+    fractions=None,
+    contact=None,
 ):
     """A whole frame's shading: its receivers (:func:`receivers_at_time`), then
     :func:`_shade_piece` on all of them (traced on the scene without its receiver arrays, as the
@@ -192,7 +207,17 @@ def _place_and_shade_frame(
     points, normals = receivers_at_time(scene, t)
     light = _without_receivers(scene)
     e, rad = _shade_piece(
-        light, bsvs, points, normals, lighting, analytic_spheres, shared_normal, own, images, fractions
+        light,
+        bsvs,
+        points,
+        normals,
+        lighting,
+        analytic_spheres,
+        shared_normal,
+        own,
+        images,
+        fractions,
+        contact,
     )
     if points is scene.receivers.points and normals is scene.receivers.normals:
         return None, None, e, rad
@@ -269,7 +294,7 @@ _FLAT_SHADERS: dict = {}
 
 def _flat_shader(scene: Scene, lighting, analytic_spheres: bool, shared_normal: int, readout: bool = False):
     """:func:`_place_and_shade` for one scene as ``(call, dynamic)``: ``call(dynamic, bsvs, t, own,
-    images, extra, fractions)`` is a plain ``jax.jit`` function of the scene's and lighting's arrays
+    images, extra, fractions, contact)`` is a plain ``jax.jit`` function of the scene's and lighting's arrays
     (``dynamic``, a list flattened once here) and of the frame's BSVs and time; with ``readout``, it is
     :func:`_readout_frame` instead, and ``extra`` is its ``(readout, table)`` (None otherwise).
     ``eqx.filter_jit`` partitions,
@@ -291,14 +316,14 @@ def _flat_shader(scene: Scene, lighting, analytic_spheres: bool, shared_normal: 
         return None
     if call is None:
 
-        def run(dyn, bsvs, t, own, images, extra, fractions):
+        def run(dyn, bsvs, t, own, images, extra, fractions, contact):
             it = iter(dyn)
             full = [next(it) if m else x for x, m in zip(static, mask, strict=True)]
             scn, light = jax.tree_util.tree_unflatten(tree, full)
             if readout:
                 return _readout_frame(scn, bsvs, t, light, analytic_spheres, *extra)
             return _place_and_shade_frame(
-                scn, bsvs, t, light, analytic_spheres, shared_normal, own, images, fractions
+                scn, bsvs, t, light, analytic_spheres, shared_normal, own, images, fractions, contact
             )
 
         if len(_FLAT_SHADERS) >= 32:  # scenes are few per process; bound the cache anyway
@@ -396,6 +421,11 @@ class Renderer:
         self._static_fractions = None
         self.fraction_computations = 0
         self._shapes_static = all(shape_is_static(o) for o in scene.occluders)
+        # method.contact_visibility = "rays": the receivers next to a mesh (once where no occluder
+        # changes its shape: the receivers and lights are fixed too; tests check the reuse)
+        self._uses_contact = uses_contact(scene)
+        self._static_contact: list = []  # [contact] once made for a scene whose shapes are static
+        self.contact_computations = 0
         # static_readout: None until decided, then False or (Readout, points, normals, centre)
         self.static_readout = static_readout
         self._readout = None
@@ -563,7 +593,20 @@ class Renderer:
             out.append(img)
         return tuple(out)
 
-    def _fractions(self, own, images):
+    def _contact(self, t):
+        """The frame's :func:`jshadow.scene.contact_rows_at_time` (None where unused or no receiver
+        is near a mesh): once when no occluder changes its shape, else every frame."""
+        if not self._uses_contact:
+            return None
+        if self._static_contact:
+            return self._static_contact[0]
+        out = contact_rows_at_time(self.scene, t, self._lighting)
+        self.contact_computations += 1
+        if self._shapes_static:
+            self._static_contact.append(out)
+        return out
+
+    def _fractions(self, own, images, contact=None):
         """The receivers' visible fractions of the lights through the occlusion images
         (:func:`jshadow.scene.image_fractions`), made once and kept when no occluder changes its
         shape: the renderer's lights and placements are fixed, so the receivers (a static mesh's
@@ -574,17 +617,17 @@ class Renderer:
         if self._static_fractions is None:
             points, normals = receivers_at_time(self.scene, 0.0)
             self._static_fractions = _image_fractions(
-                self._light, images, self._lighting, points, normals, own
+                self._light, images, self._lighting, points, normals, own, contact
             )
             self.fraction_computations += 1
         return self._static_fractions
 
-    def _shade_once(self, bsvs, t, own=None, images=None, readout=None):
+    def _shade_once(self, bsvs, t, own=None, images=None, readout=None, contact=None):
         """One call placing every receiver of the frame at time ``t`` (an array) and shading them;
         with ``readout`` (a prepared :class:`jshadow.readout.Readout`), the fixed ones read out
         (:func:`_readout_frame`). The visible fractions of a scene whose occluders keep their shape
         are made once (:meth:`_fractions`) and given to the shading in place of the images."""
-        fractions = None if readout is not None else self._fractions(own, images)
+        fractions = None if readout is not None else self._fractions(own, images, contact)
         if fractions is not None:
             images = None
         analytic = self.sphere_path == "analytic"
@@ -596,12 +639,21 @@ class Renderer:
         extra = None if readout is None else (readout, occlusion_table(self.scene))
         if self._flat[mode]:
             call, dynamic = self._flat[mode]
-            out = call(dynamic, bsvs, t, own, images, extra, fractions)
+            out = call(dynamic, bsvs, t, own, images, extra, fractions, contact)
         elif readout is not None:
             out = _readout_and_shade(self.scene, bsvs, t, self._lighting, analytic, *extra)
         else:
             out = _place_and_shade(
-                self.scene, bsvs, t, self._lighting, analytic, self._shared_normal, own, images, fractions
+                self.scene,
+                bsvs,
+                t,
+                self._lighting,
+                analytic,
+                self._shared_normal,
+                own,
+                images,
+                fractions,
+                contact,
             )
         return _with_receivers(self.scene, out)
 
@@ -635,21 +687,26 @@ class Renderer:
         own = jax.block_until_ready(self._own(t))
         t_img = time.perf_counter()
         images = jax.block_until_ready(self._images(t))
+        t_contact = time.perf_counter()
+        contact = jax.block_until_ready(self._contact(t))
         t1 = time.perf_counter()
         first = {"bsv_ms": 1e3 * (t_own - t0)}
         if own is not None:
             first["self_visibility_ms"] = 1e3 * (t_img - t_own)
         if images is not None:
-            first["light_images_ms"] = 1e3 * (t1 - t_img)
+            first["light_images_ms"] = 1e3 * (t_contact - t_img)
+        if self._uses_contact:
+            first["contact_ms"] = 1e3 * (t1 - t_contact)
         t_arr = jnp.asarray(t, self.scene.receivers.points.dtype)  # traced: one compilation for all frames
         analytic = self.sphere_path == "analytic"
         n = self._receiver_count
         one_call = not self.split_stages and self.mesh is None and n <= self.chunk
-        readout = self._readout_for(bsvs, own, images) if one_call else None
+        # a frame with receivers next to the mesh shades them by its contact rows, not the readout
+        readout = self._readout_for(bsvs, own, images) if one_call and contact is None else None
         self._frames_shaded += 1
         if one_call:
             points, normals, e, rad = jax.block_until_ready(
-                self._shade_once(bsvs, t_arr, own, images, readout)
+                self._shade_once(bsvs, t_arr, own, images, readout, contact)
             )
             self.readout_frames += readout is not None
             t2 = time.perf_counter()
@@ -676,6 +733,15 @@ class Renderer:
                     if (s, size) == (0, n)
                     else tuple(None if x is None else _parallel.pad_rows(x[s : s + size], size) for x in own)
                 )
+            c = None
+            if contact is not None:
+                c = (
+                    contact
+                    if (s, size) == (0, n)
+                    else tuple(
+                        None if x is None else _parallel.pad_rows(x[s : s + size], size) for x in contact
+                    )
+                )
             if self.mesh is not None:
                 p, q = _parallel.shard_rows(p, self.mesh), _parallel.shard_rows(q, self.mesh)
                 o = (
@@ -683,17 +749,24 @@ class Renderer:
                     if o is None
                     else tuple(None if x is None else _parallel.shard_rows(x, self.mesh) for x in o)
                 )
+                c = (
+                    None
+                    if c is None
+                    else tuple(None if x is None else _parallel.shard_rows(x, self.mesh) for x in c)
+                )
             shared = min(max(self._shared_normal - s, 0), size)
             ta = time.perf_counter()
             if self.split_stages:
-                vis, dist = jax.block_until_ready(_fields(self._light, bsvs, p, o))
+                vis, dist = jax.block_until_ready(_fields(self._light, bsvs, p, o, c))
                 tb = time.perf_counter()
                 e, rad = jax.block_until_ready(
-                    _combine(self._light, p, q, vis, dist, self._lighting, analytic, shared, images, o)
+                    _combine(
+                        self._light, p, q, vis, dist, self._lighting, analytic, shared, images, o, contact=c
+                    )
                 )
             else:
                 e, rad = jax.block_until_ready(
-                    _shade(self._light, bsvs, p, q, self._lighting, analytic, shared, o, images)
+                    _shade(self._light, bsvs, p, q, self._lighting, analytic, shared, o, images, contact=c)
                 )
                 tb = time.perf_counter()
             tc = time.perf_counter()

@@ -113,6 +113,11 @@ __all__ = [
     "uses_self_rays",
     "casts_own_sh",
     "self_visibility_owners",
+    "uses_contact",
+    "contact_rows_at_time",
+    "CONTACT_REACH",
+    "CONTACT_GRID",
+    "CONTACT_NO_DERIVATIVE",
     "occluder_own_visibility",
     "clear_pose_caches",
     "self_visibility_rows",
@@ -1257,6 +1262,164 @@ def environment_visible_fraction(
     return fraction, inside
 
 
+# ---- contact receivers (method.contact_visibility = "rays") ----------------------------------------
+# the fixed receivers (scene.receivers) closer than this many bounding radii to a vertex of a mesh
+# occluder: its field, extrapolated inward from the shell, fails there (the spot cow 0.05 above its
+# floor: 12.2 % RMS error at the receivers 0.1-0.2 radii from it, 0.66 % at 0.5-1 radii); exact rays
+# were better there but not at 0.3-0.5 radii under a lamp-split map (spot_sunset 2.99 -> 3.26 %,
+# max 4.1 -> 5.3 %; BENCHMARKS.md "Contact receivers")
+CONTACT_REACH = 0.3
+CONTACT_GRID = (24, 48)  # θ × φ sphere grid of their visibility rays (48 × 96 gave nothing more)
+_CONTACT_ROWS = 64  # receivers per chunk of their rays (jshadow._active.over_active)
+CONTACT_NO_DERIVATIVE = (
+    "method.contact_visibility = 'rays' casts binary visibility from the receivers next to a mesh "
+    "occluder, which has no derivative with respect to the mesh, the receivers or the lights: "
+    "differentiate with contact_visibility = 'field'"
+)
+
+
+def uses_contact(scene: Scene) -> bool:
+    """Whether ``method.contact_visibility = "rays"`` applies: the scene has a mesh occluder."""
+    return scene.method.contact_visibility == "rays" and any(
+        isinstance(o, MeshOccluder) for o in scene.occluders
+    )
+
+
+def _nearest_vertex_d2(points: Float[Array, "M 3"], v: Float[Array, "V 3"]) -> Float[Array, " M"]:
+    """Squared distance from each point to its nearest vertex (one GEMM)."""
+    d2 = jnp.sum(points * points, -1)[:, None] - 2.0 * points @ v.T + jnp.sum(v * v, -1)[None]
+    return jnp.maximum(jnp.min(d2, -1), 0.0)
+
+
+def _contact_rows(scene: Scene, t, lighting: Lighting):
+    """The arrays of :func:`contact_rows_at_time` (always; ``near`` may be all False)."""
+    m = scene.method
+    n = m.sh_bands
+    points, normals = receivers_at_time(scene, t)
+    n_rec, n_fixed = points.shape[0], scene.receivers.points.shape[0]
+    dtype = points.dtype
+    fixed = jnp.arange(n_rec) < n_fixed
+    meshes = [
+        (i, occ.vertices(t), occ.faces)
+        for i, occ in enumerate(scene.occluders)
+        if isinstance(occ, MeshOccluder)
+    ]
+    spheres = [(occ.center, occ.radius) for occ in scene.occluders if isinstance(occ, SphereOccluder)]
+    env = lighting.env_lights
+    light_params = tuple((light.center, light.radius) for light in scene.lights)
+    chunks = max(1, n_rec // _CONTACT_ROWS)
+
+    def forward(x):
+        pts, nrm, verts, lights, balls = x
+        near = [jnp.zeros(n_rec, bool)] * len(scene.occluders)
+        rows = [jnp.zeros((n_rec, n * n), dtype)] * len(scene.occluders)
+        d, w = sh.sphere_grid(*CONTACT_GRID, dtype)
+        basis = sh.sh_basis(d, n) * w[:, None]  # (K, n²) quadrature weights folded in
+        centres = []
+        for (i, _, faces), v in zip(meshes, verts, strict=True):
+            c, r = bounding_sphere(v)
+            centres.append(c)
+            reach = CONTACT_REACH * r
+            maybe = fixed & (jnp.sum((pts - c) ** 2, -1) < (r + reach) ** 2)
+            d2 = over_active(lambda p, v=v: _nearest_vertex_d2(p, v), maybe, (pts,), jnp.inf)
+            near[i] = maybe & (d2 < reach * reach)
+
+            def cast(p, v=v, faces=faces):
+                return (1.0 - ray_fan_any_hit(p, d, v, faces).astype(dtype)) @ basis
+
+            rows[i] = over_active(cast, near[i], (pts,), 0.0, chunks=chunks)
+        any_near = jnp.any(jnp.stack(near, -1), -1)
+
+        def blocked(p, dirs, gates=None):
+            """(M, K) 1 where the ray from p along dirs (K, 3) or (M, K, 3) is free of every occluder."""
+            vis = jnp.ones(p.shape[:1] + dirs.shape[-2:-1], dtype)
+            shared = dirs.ndim == 2
+            for k, ((_, _, faces), v) in enumerate(zip(meshes, verts, strict=True)):
+                free = 1.0 - ray_fan_any_hit(p, dirs, v, faces).astype(dtype)
+                vis = vis * (free if gates is None else jnp.where(gates(centres[k])[:, None], free, 1.0))
+            for c, r in balls:
+                dd = dirs[None] if shared else dirs
+                free = 1.0 - ray_sphere_any_hit(p[:, None, :], dd, c, r).astype(dtype)
+                vis = vis * (free if gates is None else jnp.where(gates(c)[:, None], free, 1.0))
+            return vis
+
+        light_f = None
+        if lights:
+            strata = tuple(m.light_cap)
+
+            def fractions(p, q):
+                out = []
+                for lc, lr in lights:
+                    dx, dy, dz = stratified_cone_components(lc - p, lr, strata)
+                    d_l = safe_norm(p - lc)
+                    # an occluder counts where its centre is nearer than the light's, as the lookups'
+                    vis = blocked(
+                        p, jnp.stack([dx, dy, dz], -1), lambda c, p=p, d_l=d_l: safe_norm(p - c) < d_l
+                    )
+                    cos = jnp.maximum(q[:, 0:1] * dx + q[:, 1:2] * dy + q[:, 2:3] * dz, 0.0)
+                    den = jnp.sum(cos, -1)
+                    out.append(jnp.where(den > 0, jnp.sum(vis * cos, -1) / jnp.where(den > 0, den, 1.0), 1.0))
+                return jnp.stack(out, -1)
+
+            light_f = over_active(fractions, any_near, (pts, nrm), 1.0, chunks=chunks)
+        env_f = None
+        if env is not None:
+            dirs = jax.lax.stop_gradient(env.directions).astype(dtype)
+            energy = env.energy.astype(dtype)
+
+            def env_fraction(p, q):
+                cos = jnp.maximum(q @ dirs.T, 0.0)
+                den = cos @ energy
+                num = (cos * blocked(p, dirs)) @ energy
+                return jnp.where(den > 0, num / jnp.where(den > 0, den, 1.0), 1.0)
+
+            env_f = over_active(env_fraction, any_near, (pts, nrm), 1.0, chunks=chunks)
+        return jnp.stack(near, -1), jnp.stack(rows, 1), light_f, env_f
+
+    x = (points, normals, tuple(v for _, v, _ in meshes), light_params, tuple(spheres))
+    return _no_derivative_guard(forward, x, CONTACT_NO_DERIVATIVE)
+
+
+_contact_rows_jit = eqx.filter_jit(_contact_rows)
+
+
+def contact_rows_at_time(scene: Scene, t, lighting: Lighting | None = None) -> tuple | None:
+    """``(near, rows, lights, env)`` of the receivers next to a mesh occluder at time t, or None
+    where the scene does not use them (:func:`uses_contact`) or, at a concrete pose, no receiver is
+    that near.
+
+    A fixed receiver (``scene.receivers``; not an occluder's own vertex) is *near* mesh occluder i
+    when one of the mesh's vertices lies within :data:`CONTACT_REACH` × its bounding radius. The
+    field extrapolates a mesh's visibility inward from its shell (1.5 radii by default), which fails
+    at a contact: a mesh just above its floor. There, instead:
+
+    * ``rows`` (N, m, n²): mesh i's visibility SH cast by rays along a :data:`CONTACT_GRID` sphere
+      grid (Gauss–Legendre × uniform quadrature), in place of its field's
+      (:func:`occluder_visibilities`, with ``near`` (N, m) bool saying where);
+    * ``lights`` (N, L): each sphere light's cosine-weighted visible fraction over the same
+      ``method.light_cap`` cap directions as :func:`light_visible_fractions`, by exact rays against
+      every occluder (None without sphere lights);
+    * ``env`` (N, 3): the environment lights' visible fraction as
+      :func:`environment_visible_fraction` forms it, by exact rays (None without them);
+
+    both in place of the images' lookups (:func:`image_fractions`) at receivers near any mesh.
+    Rows of other receivers are 0 (``rows``) or 1 and are not read. The nearest-vertex test, the
+    rays and the fractions run only on chunks holding a receiver that needs them
+    (:func:`jshadow._active.over_active`). A receiver near the middle of a face much larger than the
+    reach is not found (the test measures to vertices). Binary visibility: differentiating with
+    respect to the meshes, the receivers or the lights raises :data:`CONTACT_NO_DERIVATIVE`.
+    """
+    if not uses_contact(scene):
+        return None
+    if lighting is None:
+        lighting = scene_lighting(scene)
+    out = _contact_rows_jit(scene, jnp.asarray(t, scene.receivers.points.dtype), lighting)
+    near = _concrete(out[0])
+    if near is not None and not near.any():
+        return None
+    return out
+
+
 # BSV occluders of one coefficient shape up to this many are traced one by one; more share one
 # lax.map body (compile time that does not grow with their number)
 _UNROLLED_FIELDS = 16
@@ -1268,6 +1431,7 @@ def occluder_visibilities(
     points: Float[Array, "N 3"],
     own: tuple[Float[Array, "N n2"], Array] | None = None,
     plane_first: bool = False,
+    contact: tuple | None = None,
 ) -> tuple[list, list]:
     """Visibility SH (N, n²) and distance (N,) from each receiver to each occluder's centre.
 
@@ -1288,6 +1452,10 @@ def occluder_visibilities(
     ``owners[r]`` is 1 instead of the field's, its cast transfer ``rows[r]`` standing for its
     clamped cosine in :func:`combine` (``self_visibility = "rays"``; rows None: the field's
     throughout).
+
+    ``contact``: None, or :func:`contact_rows_at_time`'s tuple (or a piece of it, sliced like
+    ``points``): where ``near[r, i]``, receiver r's visibility of mesh occluder i is the cast
+    ``rows[r, i]`` instead of the field's.
     """
     n = scene.method.sh_bands
     table = occlusion_table(scene) if any(b is not None for b in bsvs) else None
@@ -1335,6 +1503,11 @@ def occluder_visibilities(
             if isinstance(occ, MeshOccluder):
                 unit = unit_visibility((1,), n, vis[i].dtype)
                 vis[i] = jnp.where((owners == i)[:, None], unit, vis[i])
+    if contact is not None:
+        near, rows = contact[0], contact[1]
+        for i, occ in enumerate(scene.occluders):
+            if isinstance(occ, MeshOccluder):
+                vis[i] = jnp.where(near[:, i, None], rows[:, i].astype(vis[i].dtype), vis[i])
     return vis, dist
 
 
@@ -1392,16 +1565,19 @@ def _product(vs: list) -> Float[Array, "N n2"] | None:
     return acc.T
 
 
-def uses_visibility_chain(scene: Scene, own=None, images=None, lighting: Lighting | None = None) -> bool:
+def uses_visibility_chain(
+    scene: Scene, own=None, images=None, lighting: Lighting | None = None, contact=None
+) -> bool:
     """Whether :func:`visibility_chain` can stand for :func:`occluder_visibilities` in a frame's
-    combination: an environment, no sphere lights, no own-vertex rows, occlusion images or
-    environment lights (only the product of all visibilities is needed then), and 2 to
+    combination: an environment, no sphere lights, no own-vertex or contact rows, occlusion images
+    or environment lights (only the product of all visibilities is needed then), and 2 to
     ``_UNROLLED_FIELDS`` occluders."""
     env_lights = None if lighting is None else lighting.env_lights
     return (
         scene.environment is not None
         and not scene.lights
         and own is None
+        and contact is None
         and images is None
         and env_lights is None
         and 2 <= len(scene.occluders) <= _UNROLLED_FIELDS
@@ -1803,11 +1979,14 @@ def image_fractions(
     points: Float[Array, "N 3"],
     normals: Float[Array, "N 3"],
     own: tuple[Array, ...] | None = None,
+    contact: tuple | None = None,
 ) -> tuple[list | None, tuple[Float[Array, "N 3"], Bool[Array, " N"]] | None]:
     """The visible fractions :func:`combine` takes from the occlusion images: of each sphere light
     (:func:`light_visible_fractions`, None without sphere lights) and of the environment's bright
     part (:func:`environment_visible_fraction` with ``own``, None unless ``lighting.env_lights``);
-    both None when ``images`` is None."""
+    both None when ``images`` is None. With ``contact`` (:func:`contact_rows_at_time`'s tuple,
+    sliced like ``points``), the receivers near a mesh take its exact fractions instead (and are
+    not ``inside``)."""
     if images is None:
         return None, None
     fractions = light_visible_fractions(scene, images, points, normals) if scene.lights else None
@@ -1815,6 +1994,14 @@ def image_fractions(
     env_fraction = (
         None if env is None else environment_visible_fraction(scene, images, env, points, normals, own)
     )
+    if contact is not None:
+        near, _, light_f, env_f = contact
+        hit = jnp.any(near, -1)
+        if fractions is not None and light_f is not None:
+            fractions = [jnp.where(hit, light_f[:, j].astype(f.dtype), f) for j, f in enumerate(fractions)]
+        if env_fraction is not None and env_f is not None:
+            f, inside = env_fraction
+            env_fraction = (jnp.where(hit[:, None], env_f.astype(f.dtype), f), inside & ~hit)
     return fractions, env_fraction
 
 
@@ -1839,10 +2026,11 @@ def render_at(
         images = scene_images(scene, t)
     images = with_lamp_images(scene, t, images)
     points, normals = receivers_at_time(scene, t)
-    vis, dist = occluder_visibilities(scene, bsvs, points, own, plane_first=True)
-    shared = shared_normal_count(scene.receivers.normals)  # the plane's receivers lead `points`
     lighting = scene_lighting(scene)
-    fractions, env_fraction = image_fractions(scene, images, lighting, points, normals, own)
+    contact = contact_rows_at_time(scene, t, lighting)
+    vis, dist = occluder_visibilities(scene, bsvs, points, own, plane_first=True, contact=contact)
+    shared = shared_normal_count(scene.receivers.normals)  # the plane's receivers lead `points`
+    fractions, env_fraction = image_fractions(scene, images, lighting, points, normals, own, contact)
     e = combine(
         scene,
         points,

@@ -281,8 +281,9 @@ def test_cli_render_reports_the_cast_once_for_a_rigid_mesh(tmp_path, capsys):
     assert t["self_visibility_computations"] == 1 and t["bsv_computations"] == 1
     first, second = t["per_frame"]
     assert first["self_visibility_ms"] > second["self_visibility_ms"] >= 0
+    # the receivers next to the egg (contact_visibility "auto": rays for a rigid mesh) are a stage too
     assert second["total_ms"] == pytest.approx(
-        second["bsv_ms"] + second["self_visibility_ms"] + second["shading_ms"]
+        second["bsv_ms"] + second["self_visibility_ms"] + second["contact_ms"] + second["shading_ms"]
     )
     assert "own-vertex rays" in capsys.readouterr().out
 

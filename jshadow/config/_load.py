@@ -25,6 +25,7 @@ from ._schema import (
     BSV_CENTERS,
     BSV_GRADIENTS,
     BSV_IMAGES,
+    CONTACT_VISIBILITIES,
     ENVIRONMENT_TYPES,
     LIGHT_IMAGES,
     LIGHT_TYPES,
@@ -204,6 +205,7 @@ _METHOD_KEYS = (
     "environment_threshold",
     "self_maps_grid",
     "self_maps_resolution",
+    "contact_visibility",
 )
 
 
@@ -251,6 +253,7 @@ def _method(t: _Table) -> MethodConfig:
         self_maps_resolution=_auto_or(
             t, "self_maps_resolution", lambda: t.integer("self_maps_resolution", 64, lo=8)
         ),
+        contact_visibility=t.string("contact_visibility", "auto", choices=("auto", *CONTACT_VISIBILITIES)),
     )
     try:
         return MethodConfig(**cfg)

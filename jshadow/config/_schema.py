@@ -22,6 +22,7 @@ from jaxtyping import Array, Float
 from ..entities import BSV_CENTERS as BSV_CENTERS
 from ..entities import BSV_GRADIENTS as BSV_GRADIENTS
 from ..entities import BSV_IMAGES as BSV_IMAGES
+from ..entities import CONTACT_VISIBILITIES as CONTACT_VISIBILITIES
 from ..entities import LIGHT_IMAGES as LIGHT_IMAGES
 from ..entities import LIGHT_VISIBILITIES as LIGHT_VISIBILITIES
 from ..entities import SELF_VISIBILITIES as SELF_VISIBILITIES
@@ -89,6 +90,7 @@ _AUTO_FALLBACK = {
     "lamp_images": 0,
     "self_maps_grid": (8, 16),
     "self_maps_resolution": 64,
+    "contact_visibility": "field",
 }
 
 
@@ -142,7 +144,10 @@ class MethodConfig(eqx.Module):
     over that sphere grid) and ``self_maps_resolution`` "auto" | R (≥ 8: its depth images' pixels
     per side); "auto", the defaults: 12 × 24 at R from the meshes' edge lengths where an
     environment reaches the vertices through the transfer alone, else 8 × 16 at 64
-    (:func:`jshadow.config.auto_light_path`).
+    (:func:`jshadow.config.auto_light_path`). ``contact_visibility`` "auto" | "field" | "rays"
+    (the fixed receivers next to a mesh: the field's visibility and the images' lookups, or exact
+    rays, :class:`jshadow.entities.Method`; "auto", the default: "rays" where every mesh keeps its
+    shape, they are cast once, else "field").
     """
 
     preset: str = eqx.field(static=True, default="default")
@@ -170,6 +175,7 @@ class MethodConfig(eqx.Module):
     lamp_images: int | str = eqx.field(static=True, default="auto")
     self_maps_grid: tuple[int, int] | str = eqx.field(static=True, default="auto")
     self_maps_resolution: int | str = eqx.field(static=True, default="auto")
+    contact_visibility: str = eqx.field(static=True, default="auto")
 
     def __check_init__(self):
         if self.model not in MODELS:
@@ -220,6 +226,7 @@ class MethodConfig(eqx.Module):
                 lamp_images=chosen["lamp_images"],
                 self_maps_grid=tuple(chosen["self_maps_grid"]),
                 self_maps_resolution=chosen["self_maps_resolution"],
+                contact_visibility=chosen["contact_visibility"],
             )
         except (ValueError, TypeError) as err:
             raise ConfigError(None, None, str(err)) from None
