@@ -79,6 +79,7 @@ CASES = [
     "spot_light_low",
     # untuned, deforming: a map's lamps in images made every frame, a mesh's own vertices by "maps"
     "airplane_studio_bend_last",
+    "spot_twist_low_last",
     "spot_self_sky_bend_last",
     "bunny_self_sky_bend_last",
 ]
@@ -109,7 +110,14 @@ def auto_keys(scene) -> dict:
     hdr = scene.environment is not None and scene.environment.kind == "hdr"
     env = scene.environment is not None
     return auto_light_path(
-        scene.occluders, bool(scene.lights), hdr, scene.self_shadow, m.shell, m.bsv_method, environment=env
+        scene.occluders,
+        bool(scene.lights),
+        hdr,
+        scene.self_shadow,
+        m.shell,
+        m.bsv_method,
+        environment=env,
+        receivers=scene.receivers.points,
     )
 
 

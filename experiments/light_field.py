@@ -139,6 +139,18 @@ def _spot_light_low(method: dict, res: int):
     return models._scene(method, occ, [models._sphere_light()], env=sky, res=res)
 
 
+def _spot_twist_low(method: dict, res: int):
+    """Untuned for a deforming mesh at a contact: the spot cow of ``spot_light_low`` (0.05 above
+    the plane) twisting about the vertical through its centre (0 → 1.2 rad per bounding radius, which
+    keeps its lowest point's height), its last frame, under the same sphere light and sky. Its
+    plane's receivers next to the cow keep the field by default ("auto": exact rays would be paid
+    every frame)."""
+    twist = make_deformation("twist", (0.0, 1.2), axis="y")
+    occ = [models._mesh("spot.obj", (0.2, 0.6, -0.1), 0.7, twist)]
+    sky = models._sky("sky", (0.6, 0.7, 0.9))
+    return models._scene(method, occ, [models._sphere_light()], env=sky, res=res, n_frames=2)
+
+
 def _spot_self_sky_bend(method: dict, res: int):
     """Untuned for a deforming mesh's self-shadowing: the spot cow bending over its animation (bend
     0 → 0.7 about y toward z), its last frame, under a sky, its 2930 own vertices among the
@@ -165,6 +177,7 @@ def _cases():
     cases["bunny_studio_low"] = (_bunny_studio_low, 0, "analytic", False)
     cases["spot_light_low"] = (_spot_light_low, 0, "analytic", False)
     cases["airplane_studio_bend_last"] = (_airplane_studio_bend, 1, "analytic", False)
+    cases["spot_twist_low_last"] = (_spot_twist_low, 1, "analytic", False)
     cases["spot_self_sky_bend_last"] = (_spot_self_sky_bend, 1, "analytic", False)
     cases["bunny_self_sky_bend_last"] = (_bunny_self_sky_bend, 1, "analytic", False)
     return cases

@@ -366,7 +366,12 @@ class Renderer:
             symmetric about the centre; sampled at four times of the animation before preparing,
             checked every frame). ``readout_frames``
             counts the frames it shaded; ``readout_reason`` says why it does not apply (None if
-            it does).
+            it does). A frame with receivers next to a mesh (``method.contact_visibility =
+            "rays"``, :func:`jshadow.scene.contact_rows_at_time`) is shaded by the general path.
+
+    With ``contact_visibility = "rays"`` the receivers next to a mesh are cast once when no
+    occluder changes its shape, else every frame (``contact_computations`` counts the casts; the
+    frame's timings then hold ``contact_ms``).
     """
 
     def __init__(

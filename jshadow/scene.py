@@ -115,6 +115,7 @@ __all__ = [
     "self_visibility_owners",
     "uses_contact",
     "contact_rows_at_time",
+    "contact_ray_tests",
     "CONTACT_REACH",
     "CONTACT_GRID",
     "CONTACT_NO_DERIVATIVE",
@@ -1270,7 +1271,11 @@ def environment_visible_fraction(
 # max 4.1 -> 5.3 %; BENCHMARKS.md "Contact receivers")
 CONTACT_REACH = 0.3
 CONTACT_GRID = (24, 48)  # θ × φ sphere grid of their visibility rays (48 × 96 gave nothing more)
-_CONTACT_ROWS = 64  # receivers per chunk of their rays (jshadow._active.over_active)
+# receivers per chunk of their rays (jshadow._active.over_active): the power of two from 8 to 64 that
+# holds the near receivers (larger chunks run faster per receiver, smaller ones waste less: 2 near
+# receivers 31 ms in chunks of 8, 92 ms in chunks of 64; 42 near 90 ms in one chunk of 64, 107 ms in
+# two of 32; 91 near 228 ms in chunks of 8, 116 in chunks of 64); 32 where the count is traced
+_CONTACT_ROWS = (8, 64)
 CONTACT_NO_DERIVATIVE = (
     "method.contact_visibility = 'rays' casts binary visibility from the receivers next to a mesh "
     "occluder, which has no derivative with respect to the mesh, the receivers or the lights: "
@@ -1291,14 +1296,41 @@ def _nearest_vertex_d2(points: Float[Array, "M 3"], v: Float[Array, "V 3"]) -> F
     return jnp.maximum(jnp.min(d2, -1), 0.0)
 
 
-def _contact_rows(scene: Scene, t, lighting: Lighting):
-    """The arrays of :func:`contact_rows_at_time` (always; ``near`` may be all False)."""
+def _contact_near(scene: Scene, t) -> Bool[Array, "N m"]:
+    """``near`` of :func:`contact_rows_at_time` (a mask: no derivative)."""
+    points = jax.lax.stop_gradient(receivers_at_time(scene, t)[0])
+    n_rec, n_fixed = points.shape[0], scene.receivers.points.shape[0]
+    fixed = jnp.arange(n_rec) < n_fixed
+    near = []
+    for occ in scene.occluders:
+        if not isinstance(occ, MeshOccluder):
+            near.append(jnp.zeros(n_rec, bool))
+            continue
+        v = jax.lax.stop_gradient(occ.vertices(t))
+        c, r = bounding_sphere(v)
+        reach = CONTACT_REACH * r
+        maybe = fixed & (jnp.sum((points - c) ** 2, -1) < (r + reach) ** 2)
+        d2 = over_active(lambda p, v=v: _nearest_vertex_d2(p, v), maybe, (points,), jnp.inf)
+        near.append(maybe & (d2 < reach * reach))
+    return jnp.stack(near, -1)
+
+
+def _contact_chunk(count: int | None) -> int:
+    """Receivers per chunk of the contact rays for ``count`` near receivers (None: unknown)."""
+    lo, hi = _CONTACT_ROWS
+    if count is None:
+        return 32
+    return int(min(hi, max(lo, 1 << max(0, count - 1).bit_length())))
+
+
+def _contact_rows(scene: Scene, t, lighting: Lighting, near: Bool[Array, "N m"], chunk: int = 32):
+    """The arrays of :func:`contact_rows_at_time` for the mask ``near`` of :func:`_contact_near`,
+    the rays in chunks of ``chunk`` receivers (static)."""
     m = scene.method
     n = m.sh_bands
     points, normals = receivers_at_time(scene, t)
-    n_rec, n_fixed = points.shape[0], scene.receivers.points.shape[0]
+    n_rec = points.shape[0]
     dtype = points.dtype
-    fixed = jnp.arange(n_rec) < n_fixed
     meshes = [
         (i, occ.vertices(t), occ.faces)
         for i, occ in enumerate(scene.occluders)
@@ -1307,28 +1339,22 @@ def _contact_rows(scene: Scene, t, lighting: Lighting):
     spheres = [(occ.center, occ.radius) for occ in scene.occluders if isinstance(occ, SphereOccluder)]
     env = lighting.env_lights
     light_params = tuple((light.center, light.radius) for light in scene.lights)
-    chunks = max(1, n_rec // _CONTACT_ROWS)
+    chunks = max(1, -(-n_rec // chunk))
 
     def forward(x):
         pts, nrm, verts, lights, balls = x
-        near = [jnp.zeros(n_rec, bool)] * len(scene.occluders)
         rows = [jnp.zeros((n_rec, n * n), dtype)] * len(scene.occluders)
         d, w = sh.sphere_grid(*CONTACT_GRID, dtype)
         basis = sh.sh_basis(d, n) * w[:, None]  # (K, n²) quadrature weights folded in
         centres = []
         for (i, _, faces), v in zip(meshes, verts, strict=True):
-            c, r = bounding_sphere(v)
-            centres.append(c)
-            reach = CONTACT_REACH * r
-            maybe = fixed & (jnp.sum((pts - c) ** 2, -1) < (r + reach) ** 2)
-            d2 = over_active(lambda p, v=v: _nearest_vertex_d2(p, v), maybe, (pts,), jnp.inf)
-            near[i] = maybe & (d2 < reach * reach)
+            centres.append(bounding_sphere(v)[0])
 
             def cast(p, v=v, faces=faces):
                 return (1.0 - ray_fan_any_hit(p, d, v, faces).astype(dtype)) @ basis
 
-            rows[i] = over_active(cast, near[i], (pts,), 0.0, chunks=chunks)
-        any_near = jnp.any(jnp.stack(near, -1), -1)
+            rows[i] = over_active(cast, near[:, i], (pts,), 0.0, chunks=chunks)
+        any_near = jnp.any(near, -1)
 
         def blocked(p, dirs, gates=None):
             """(M, K) 1 where the ray from p along dirs (K, 3) or (M, K, 3) is free of every occluder."""
@@ -1344,7 +1370,7 @@ def _contact_rows(scene: Scene, t, lighting: Lighting):
             return vis
 
         light_f = None
-        if lights:
+        if lights and m.light_visibility == "images":  # else the lights are shadowed by the SH
             strata = tuple(m.light_cap)
 
             def fractions(p, q):
@@ -1374,13 +1400,53 @@ def _contact_rows(scene: Scene, t, lighting: Lighting):
                 return jnp.where(den > 0, num / jnp.where(den > 0, den, 1.0), 1.0)
 
             env_f = over_active(env_fraction, any_near, (pts, nrm), 1.0, chunks=chunks)
-        return jnp.stack(near, -1), jnp.stack(rows, 1), light_f, env_f
+        return near, jnp.stack(rows, 1), light_f, env_f
 
     x = (points, normals, tuple(v for _, v, _ in meshes), light_params, tuple(spheres))
     return _no_derivative_guard(forward, x, CONTACT_NO_DERIVATIVE)
 
 
+_contact_near_jit = eqx.filter_jit(_contact_near)
 _contact_rows_jit = eqx.filter_jit(_contact_rows)
+
+
+def contact_ray_tests(
+    occluders: Sequence,
+    points: Float[Array, "N 3"],
+    rays: int,
+    times: Sequence[float] = (0.0, 1 / 3, 2 / 3, 1.0),
+) -> float:
+    """Ray–triangle tests a frame's contact rows take (:func:`contact_rows_at_time`): per mesh
+    occluder, its receivers among ``points`` near it (:data:`CONTACT_REACH`), rounded up to the
+    chunks of rows the rays run on, times ``rays`` per receiver times its faces; summed over the
+    meshes, the most over ``times`` of the animation. inf where a mesh or ``points`` is traced."""
+    p = _concrete(points)
+    if p is None:
+        return math.inf
+    p = p.astype(np.float64)
+    worst = 0.0
+    for t in times:
+        total = 0.0
+        for occ in occluders:
+            if not isinstance(occ, MeshOccluder):
+                continue
+            v, f = _concrete(_vertices_at(occ, jnp.float32(t))), _concrete(occ.faces)
+            if v is None or f is None:
+                return math.inf
+            v = v.astype(np.float64)
+            c = 0.5 * (v.max(0) + v.min(0))
+            r = float(np.sqrt(((v - c) ** 2).sum(-1).max()))
+            reach = CONTACT_REACH * r
+            maybe = np.nonzero(((p - c) ** 2).sum(-1) < (r + reach) ** 2)[0]
+            near = 0
+            for lo in range(0, maybe.size, 1024):
+                q = p[maybe[lo : lo + 1024]]
+                d2 = (q * q).sum(-1)[:, None] - 2.0 * q @ v.T + (v * v).sum(-1)[None]
+                near += int((d2.min(-1) < reach * reach).sum())
+            chunk = _contact_chunk(near)
+            total += -(-near // chunk) * chunk * rays * f.shape[0]
+        worst = max(worst, total)
+    return worst
 
 
 def contact_rows_at_time(scene: Scene, t, lighting: Lighting | None = None) -> tuple | None:
@@ -1398,7 +1464,8 @@ def contact_rows_at_time(scene: Scene, t, lighting: Lighting | None = None) -> t
       (:func:`occluder_visibilities`, with ``near`` (N, m) bool saying where);
     * ``lights`` (N, L): each sphere light's cosine-weighted visible fraction over the same
       ``method.light_cap`` cap directions as :func:`light_visible_fractions`, by exact rays against
-      every occluder (None without sphere lights);
+      every occluder (None without sphere lights or with ``light_visibility = "sh"``, where the
+      visibility SH shadows them);
     * ``env`` (N, 3): the environment lights' visible fraction as
       :func:`environment_visible_fraction` forms it, by exact rays (None without them);
 
@@ -1413,11 +1480,13 @@ def contact_rows_at_time(scene: Scene, t, lighting: Lighting | None = None) -> t
         return None
     if lighting is None:
         lighting = scene_lighting(scene)
-    out = _contact_rows_jit(scene, jnp.asarray(t, scene.receivers.points.dtype), lighting)
-    near = _concrete(out[0])
-    if near is not None and not near.any():
-        return None
-    return out
+    t = jnp.asarray(t, scene.receivers.points.dtype)
+    near = _contact_near_jit(scene, t)
+    concrete = _concrete(near)
+    if concrete is not None and not concrete.any():
+        return None  # no ray stage at all
+    count = None if concrete is None else int(concrete.any(-1).sum())
+    return _contact_rows_jit(scene, t, lighting, near, _contact_chunk(count))
 
 
 # BSV occluders of one coefficient shape up to this many are traced one by one; more share one

@@ -9,10 +9,11 @@ exact ray–sphere tests that the images' path uses for a sphere occluder; a mes
 receiver gives None (no work, the read-out path kept); the Renderer makes them once for shapes that
 do not change and every frame for a deforming mesh, in one call and in pieces, as ``render`` does;
 differentiating them raises in words, ``"field"`` differentiates; config keys are read, checked and
-chosen by "auto".
+chosen by "auto" (over a deforming mesh by the ray tests a frame would take).
 """
 
 import dataclasses
+import math
 
 import jax
 import jax.numpy as jnp
@@ -21,14 +22,16 @@ import pytest
 from test_environment_lights import _sun_map
 from test_scene import SMALL, f32, icosphere_occluder, plane
 
-from jshadow.config import ConfigError, build_scene, config_from_dict
+from jshadow.config import AUTO_CONTACT_TESTS, ConfigError, build_scene, config_from_dict
 from jshadow.entities import Environment, Scene, SphereLight, SphereOccluder
 from jshadow.field import sphere_visibility_sh
 from jshadow.geometry import Twist
 from jshadow.runner import Renderer
 from jshadow.scene import (
+    CONTACT_GRID,
     CONTACT_NO_DERIVATIVE,
     CONTACT_REACH,
+    contact_ray_tests,
     contact_rows_at_time,
     environment_visible_fraction,
     light_visible_fractions,
@@ -213,9 +216,18 @@ def test_config_reads_checks_and_chooses_contact_visibility():
     assert chosen(_config(contact_visibility="field")) == "field"
     with pytest.raises(ConfigError, match="contact_visibility"):
         config_from_dict(_config(contact_visibility="exact"))
+    # a deforming mesh's rows are cast every frame: where they take few enough ray-triangle tests
     bending = _config()
     bending["occluder"][0]["deform"] = {"type": "bend", "amount": [0.0, 0.5], "axis": "x", "toward": "y"}
-    assert chosen(bending) == "field"  # its rays would be cast every frame
+    assert chosen(bending) == "rays"
+    tests = {}
+    for res in (8, 400):
+        bending["receiver"]["resolution"] = [res, res]
+        scene = build_scene(config_from_dict(bending))
+        tests[res] = contact_ray_tests(scene.occluders, scene.receivers.points, math.prod(CONTACT_GRID))
+        want = "rays" if tests[res] <= AUTO_CONTACT_TESTS else "field"
+        assert scene.method.contact_visibility == want
+    assert 0 < tests[8] <= AUTO_CONTACT_TESTS < tests[400]
     sphere = _config()
     sphere["occluder"] = [{"type": "sphere", "center": [0, 0.55, 0], "radius": 0.5}]
     assert chosen(sphere) == "field"

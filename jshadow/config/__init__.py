@@ -7,6 +7,7 @@ the config's numbers. ``get_param``/``set_param`` address those numbers by dotte
 ("occluder.0.deform.amount").
 """
 
+from ._build import AUTO_CONTACT_TESTS as AUTO_CONTACT_TESTS
 from ._build import AUTO_ENVIRONMENT_LIGHTS as AUTO_ENVIRONMENT_LIGHTS
 from ._build import AUTO_ENVIRONMENT_LIGHTS_DEFORMING as AUTO_ENVIRONMENT_LIGHTS_DEFORMING
 from ._build import AUTO_ENVIRONMENT_LIGHTS_STATIC as AUTO_ENVIRONMENT_LIGHTS_STATIC

@@ -274,6 +274,12 @@ AUTO_LAMP_IMAGES = 128
 # fifth runs). 3.0 pixels per median edge, within 64-160: the cow 160, the bunny 96 (at 2.8 the
 # cow took 128; both meshes were used to choose it)
 AUTO_MAPS_GRID = (12, 24)
+# a deforming mesh's receivers next to it (contact_visibility) are cast every frame: "auto" casts them
+# where they take at most this many ray-triangle tests per frame at four times of the animation
+# (jshadow.scene.contact_ray_tests; about 0.2 s at the 5-6e9 tests per second measured here, the
+# paper's frames taking 0.12-0.19 s), else keeps the field: the twisting spot cow 0.05 above its
+# floor 1.90 -> 0.53 % relative RMSE at a 32² plane (4.4e8 tests, 98 ms per frame), not at 128²
+AUTO_CONTACT_TESTS = 1.0e9
 AUTO_MAPS_EDGE_PIXELS = 3.0
 AUTO_MAPS_RESOLUTION = (64, 160)  # the range of that resolution, in steps of 32
 
@@ -307,6 +313,7 @@ def auto_light_path(
     shell: float,
     bsv_method: str,
     environment: bool = True,
+    receivers=None,
 ) -> dict:
     """The light path the "auto" options take for a scene's content, as the ``[method]`` keys
     ``light_visibility``, ``environment_lights``, ``self_visibility``, ``directions``,
@@ -351,7 +358,10 @@ def auto_light_path(
     extrapolation inward and the images' lookups, made once (:func:`jshadow.scene.contact_rows_at_time`;
     the untuned spot cow 0.05 above its floor under a sphere light and a sky 2.12 → 0.54 %, the
     bunny 0.05 above its floor under the studio map 0.70 → 0.41 %, max 11.9 → 2.7 %; BENCHMARKS.md
-    "The default against the paper", eighth run); else "field".
+    "The default against the paper", eighth run). Over a deforming mesh they are cast every frame:
+    "rays" where ``receivers`` (the fixed receivers' points) are given and the casts take at most
+    :data:`AUTO_CONTACT_TESTS` ray–triangle tests per frame at four times of the animation
+    (:func:`jshadow.scene.contact_ray_tests`), else "field".
     (For a config, :func:`build_scene` asks this only for the default preset without ``[fit]``.)
 
     Why: the n-band path cannot shadow small bright sources within the accuracy targets (exact
@@ -377,12 +387,19 @@ def auto_light_path(
         if not static and lamp_tests_per_face(meshes, k, AUTO_LAMP_IMAGES) > AUTO_LAMP_TESTS_PER_FACE:
             k = AUTO_ENVIRONMENT_LIGHTS_DEFORMING
     images = applies and (has_lights or k)
-    # cast once for meshes that keep their shape; a deforming mesh would pay its rays every frame
-    # (the bending airplane's two receivers near it at its last frame: 78 -> 185 ms, no error moved)
     contact = {"contact_visibility": "rays" if static else "field"}
     maps = {key: _N_BAND[key] for key in ("self_maps_grid", "self_maps_resolution")}
     if own == "maps" and environment and not (images and k):
         maps = {"self_maps_grid": AUTO_MAPS_GRID, "self_maps_resolution": maps_resolution(meshes)}
+    if meshes and not static and receivers is not None:
+        # a deforming mesh's contact rows are cast every frame: where they are affordable
+        from ..scene import CONTACT_GRID, contact_ray_tests
+
+        lamps = k if images else 0
+        cap = AUTO_LIGHT_CAP if images and has_lights else (0, 0)
+        rays = math.prod(CONTACT_GRID) + lamps + (cap[0] * cap[1] if has_lights else 0)
+        if contact_ray_tests(occluders, receivers, rays) <= AUTO_CONTACT_TESTS:
+            contact = {"contact_visibility": "rays"}
     if images:
         return {
             "light_visibility": "images",
@@ -398,7 +415,7 @@ def auto_light_path(
     return dict(_N_BAND, self_visibility=own, **maps, **contact)
 
 
-def _light_path(config: Config, occluders: tuple, has_lights: bool) -> dict:
+def _light_path(config: Config, occluders: tuple, has_lights: bool, receivers=None) -> dict:
     """What ``[method] light_visibility``, ``environment_lights``, ``self_visibility``,
     ``directions`` and ``light_cap`` = "auto" (the defaults) mean for this config, as those keys
     (an explicit value of one is kept by :meth:`MethodConfig.to_method`): :func:`auto_light_path`
@@ -420,7 +437,14 @@ def _light_path(config: Config, occluders: tuple, has_lights: bool) -> dict:
     elif m.preset == "default" and config.fit is None:
         self_shadow = config.receiver.self_shadow
         chosen = auto_light_path(
-            occluders, has_lights, hdr, self_shadow, m.shell, m.bsv_method, environment=env is not None
+            occluders,
+            has_lights,
+            hdr,
+            self_shadow,
+            m.shell,
+            m.bsv_method,
+            environment=env is not None,
+            receivers=receivers,
         )
     visibility = chosen["light_visibility"]
     k = m.environment_lights
@@ -492,7 +516,8 @@ def build_scene(config: Config) -> Scene:
             environment = Environment(radiance=radiance, kind=ec.type)
     return Scene(
         method=config.method.to_method(
-            bsv_images=_bsv_images(config, occluders), **_light_path(config, occluders, bool(lights))
+            bsv_images=_bsv_images(config, occluders),
+            **_light_path(config, occluders, bool(lights), receivers.points),
         ),
         receivers=receivers,
         occluders=occluders,

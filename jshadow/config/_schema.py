@@ -147,7 +147,8 @@ class MethodConfig(eqx.Module):
     (:func:`jshadow.config.auto_light_path`). ``contact_visibility`` "auto" | "field" | "rays"
     (the fixed receivers next to a mesh: the field's visibility and the images' lookups, or exact
     rays, :class:`jshadow.entities.Method`; "auto", the default: "rays" where every mesh keeps its
-    shape, they are cast once, else "field").
+    shape, they are cast once, and over a deforming mesh where a frame's casts take at most
+    :data:`jshadow.config.AUTO_CONTACT_TESTS` ray–triangle tests, else "field").
     """
 
     preset: str = eqx.field(static=True, default="default")
