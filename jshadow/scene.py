@@ -1268,7 +1268,7 @@ def environment_visible_fraction(
 # occluder: its field, extrapolated inward from the shell, fails there (the spot cow 0.05 above its
 # floor: 12.2 % RMS error at the receivers 0.1-0.2 radii from it, 0.66 % at 0.5-1 radii); exact rays
 # were better there but not at 0.3-0.5 radii under a lamp-split map (spot_sunset 2.99 -> 3.26 %,
-# max 4.1 -> 5.3 %; BENCHMARKS.md "Contact receivers")
+# max 4.1 -> 5.3 %; BENCHMARKS.md "The default against the paper", eighth run)
 CONTACT_REACH = 0.3
 CONTACT_GRID = (24, 48)  # θ × φ sphere grid of their visibility rays (48 × 96 gave nothing more)
 # receivers per chunk of their rays (jshadow._active.over_active): the power of two from 8 to 64 that
