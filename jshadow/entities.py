@@ -137,7 +137,8 @@ class Method:
     rays against every occluder (:func:`jshadow.scene.contact_rows_at_time`): the untuned spot cow
     0.05 above its floor under a sphere light and a sky 2.12 → 0.54 % relative RMSE (max 27.7 →
     4.2 %), the bunny 0.05 above its floor under the studio map 0.70 → 0.41 % (max 11.9 → 2.7 %),
-    for 80–100 ms once per shape (BENCHMARKS.md "The default against the paper", eighth run).
+    for 80–125 ms of rays there at a 32² plane, about 1–1.3 ms per such receiver at 128² (BENCHMARKS.md
+    "The default against the paper", eighth run).
     :class:`jshadow.Renderer` makes them once for shapes that do not change, every frame for a
     deforming mesh. Binary visibility: differentiating them raises.
 

@@ -1296,23 +1296,32 @@ def _nearest_vertex_d2(points: Float[Array, "M 3"], v: Float[Array, "V 3"]) -> F
     return jnp.maximum(jnp.min(d2, -1), 0.0)
 
 
+def _near_mesh(points: Float[Array, "P 3"], v: Float[Array, "V 3"]) -> Bool[Array, " P"]:
+    """Which ``points`` lie within :data:`CONTACT_REACH` × the bounding radius of ``v`` from one of
+    its vertices (the nearest-vertex test only where the point is within reach of the sphere)."""
+    c, r = bounding_sphere(v)
+    reach = CONTACT_REACH * r
+    maybe = jnp.sum((points - c) ** 2, -1) < (r + reach) ** 2
+    d2 = over_active(lambda p: _nearest_vertex_d2(p, v), maybe, (points,), jnp.inf)
+    return maybe & (d2 < reach * reach)
+
+
+_near_mesh_jit = jax.jit(_near_mesh)
+
+
 def _contact_near(scene: Scene, t) -> Bool[Array, "N m"]:
-    """``near`` of :func:`contact_rows_at_time` (a mask: no derivative)."""
-    points = jax.lax.stop_gradient(receivers_at_time(scene, t)[0])
-    n_rec, n_fixed = points.shape[0], scene.receivers.points.shape[0]
-    fixed = jnp.arange(n_rec) < n_fixed
-    near = []
+    """``near`` of :func:`contact_rows_at_time` (a mask: no derivative): tested at the fixed
+    receivers, False at the own vertices that follow them."""
+    points = jax.lax.stop_gradient(scene.receivers.points)
+    own = receivers_at_time(scene, t)[0].shape[0] - points.shape[0]  # static
+    cols = []
     for occ in scene.occluders:
-        if not isinstance(occ, MeshOccluder):
-            near.append(jnp.zeros(n_rec, bool))
-            continue
-        v = jax.lax.stop_gradient(occ.vertices(t))
-        c, r = bounding_sphere(v)
-        reach = CONTACT_REACH * r
-        maybe = fixed & (jnp.sum((points - c) ** 2, -1) < (r + reach) ** 2)
-        d2 = over_active(lambda p, v=v: _nearest_vertex_d2(p, v), maybe, (points,), jnp.inf)
-        near.append(maybe & (d2 < reach * reach))
-    return jnp.stack(near, -1)
+        if isinstance(occ, MeshOccluder):
+            cols.append(_near_mesh(points, jax.lax.stop_gradient(occ.vertices(t))))
+        else:
+            cols.append(jnp.zeros(points.shape[0], bool))
+    near = jnp.stack(cols, -1)
+    return jnp.concatenate([near, jnp.zeros((own, near.shape[1]), bool)]) if own else near
 
 
 def _contact_chunk(count: int | None) -> int:
@@ -1328,8 +1337,11 @@ def _contact_rows(scene: Scene, t, lighting: Lighting, near: Bool[Array, "N m"],
     the rays in chunks of ``chunk`` receivers (static)."""
     m = scene.method
     n = m.sh_bands
-    points, normals = receivers_at_time(scene, t)
+    # the fixed receivers only (the own vertices that follow them are never near: padded below)
+    points, normals = scene.receivers.points, scene.receivers.normals
     n_rec = points.shape[0]
+    own = near.shape[0] - n_rec
+    near_all, near = near, near[:n_rec]
     dtype = points.dtype
     meshes = [
         (i, occ.vertices(t), occ.faces)
@@ -1400,10 +1412,17 @@ def _contact_rows(scene: Scene, t, lighting: Lighting, near: Bool[Array, "N m"],
                 return jnp.where(den > 0, num / jnp.where(den > 0, den, 1.0), 1.0)
 
             env_f = over_active(env_fraction, any_near, (pts, nrm), 1.0, chunks=chunks)
-        return near, jnp.stack(rows, 1), light_f, env_f
+        return jnp.stack(rows, 1), light_f, env_f
 
     x = (points, normals, tuple(v for _, v, _ in meshes), light_params, tuple(spheres))
-    return _no_derivative_guard(forward, x, CONTACT_NO_DERIVATIVE)
+    rows, light_f, env_f = _no_derivative_guard(forward, x, CONTACT_NO_DERIVATIVE)
+
+    def pad(a, fill):
+        if a is None or not own:
+            return a
+        return jnp.concatenate([a, jnp.full((own, *a.shape[1:]), fill, a.dtype)])
+
+    return near_all, pad(rows, 0.0), pad(light_f, 1.0), pad(env_f, 1.0)
 
 
 _contact_near_jit = eqx.filter_jit(_contact_near)
@@ -1420,29 +1439,18 @@ def contact_ray_tests(
     occluder, its receivers among ``points`` near it (:data:`CONTACT_REACH`), rounded up to the
     chunks of rows the rays run on, times ``rays`` per receiver times its faces; summed over the
     meshes, the most over ``times`` of the animation. inf where a mesh or ``points`` is traced."""
-    p = _concrete(points)
-    if p is None:
+    if _concrete(points) is None:
         return math.inf
-    p = p.astype(np.float64)
     worst = 0.0
     for t in times:
         total = 0.0
         for occ in occluders:
             if not isinstance(occ, MeshOccluder):
                 continue
-            v, f = _concrete(_vertices_at(occ, jnp.float32(t))), _concrete(occ.faces)
-            if v is None or f is None:
+            v, f = _vertices_at(occ, jnp.float32(t)), _concrete(occ.faces)
+            if _concrete(v) is None or f is None:
                 return math.inf
-            v = v.astype(np.float64)
-            c = 0.5 * (v.max(0) + v.min(0))
-            r = float(np.sqrt(((v - c) ** 2).sum(-1).max()))
-            reach = CONTACT_REACH * r
-            maybe = np.nonzero(((p - c) ** 2).sum(-1) < (r + reach) ** 2)[0]
-            near = 0
-            for lo in range(0, maybe.size, 1024):
-                q = p[maybe[lo : lo + 1024]]
-                d2 = (q * q).sum(-1)[:, None] - 2.0 * q @ v.T + (v * v).sum(-1)[None]
-                near += int((d2.min(-1) < reach * reach).sum())
+            near = int(jnp.sum(_near_mesh_jit(jnp.asarray(points, v.dtype), v)))
             chunk = _contact_chunk(near)
             total += -(-near // chunk) * chunk * rays * f.shape[0]
         worst = max(worst, total)

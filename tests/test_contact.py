@@ -51,6 +51,13 @@ def _scene(method=RAYS, center=C, **kw):
     return Scene(method=method, receivers=plane(n=9, size=2.0), occluders=(occ,), **kw)
 
 
+def _sphere_twin(scene):
+    """``scene`` with its icosphere replaced by the exact sphere it approximates, on the field's
+    path (the images' path tests a sphere occluder by exact ray–sphere hits)."""
+    field = dataclasses.replace(scene.method, contact_visibility="field")
+    return dataclasses.replace(scene, method=field, occluders=(SphereOccluder(f32(*C), jnp.float32(R)),))
+
+
 def _within_reach(scene) -> np.ndarray:
     p = np.asarray(scene.receivers.points, np.float64)
     v = np.asarray(scene.occluders[0].vertices(0.0), np.float64)
@@ -108,12 +115,7 @@ def test_sphere_light_fraction_matches_the_exact_sphere_test():
     near, _, lights, env = contact_rows_at_time(scene, 0.0)
     assert env is None and lights.shape == (81, 1)
     # the images' path tests a sphere occluder by exact ray-sphere hits along the same cap directions
-    ball = Scene(
-        dataclasses.replace(images, contact_visibility="field"),
-        scene.receivers,
-        (SphereOccluder(f32(*C), jnp.float32(R)),),
-        light,
-    )
+    ball = _sphere_twin(scene)
     exact = np.asarray(
         light_visible_fractions(ball, (None,), ball.receivers.points, ball.receivers.normals)[0]
     )
@@ -132,13 +134,7 @@ def test_environment_light_fraction_matches_the_exact_sphere_test():
     lighting = scene_lighting(scene)
     near, _, lights, env = contact_rows_at_time(scene, 0.0, lighting)
     assert lights is None and env.shape == (81, 3)
-    ball = Scene(
-        dataclasses.replace(split, contact_visibility="field"),
-        scene.receivers,
-        (SphereOccluder(f32(*C), jnp.float32(R)),),
-        (),
-        sun,
-    )
+    ball = _sphere_twin(scene)
     pts, nrm = ball.receivers.points, ball.receivers.normals
     exact, _ = environment_visible_fraction(ball, (None,), lighting.env_lights, pts, nrm)
     m = np.asarray(near[:, 0])

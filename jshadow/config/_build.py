@@ -276,10 +276,10 @@ AUTO_LAMP_IMAGES = 128
 AUTO_MAPS_GRID = (12, 24)
 # a deforming mesh's receivers next to it (contact_visibility) are cast every frame: "auto" casts them
 # where they take at most this many ray-triangle tests per frame at four times of the animation
-# (jshadow.scene.contact_ray_tests; about 0.2 s at the 5-6e9 tests per second measured here, the
-# paper's frames taking 0.12-0.19 s), else keeps the field: the twisting spot cow 0.05 above its
-# floor 1.90 -> 0.53 % relative RMSE at a 32² plane (4.8e8 tests, 98 ms per frame), not at 128²
-# (5.3e9 tests)
+# (jshadow.scene.contact_ray_tests; about 0.2 s at the 5e9 tests per second measured here, the
+# twisting cow's 4.8e8 tests in 91 ms; the paper's frames take 0.12-0.19 s), else keeps the field:
+# the twisting spot cow 0.05 above its floor 1.90 -> 0.53 % relative RMSE at a 32² plane (98 ms per
+# frame), not at 128² (5.3e9 tests)
 AUTO_CONTACT_TESTS = 1.0e9
 AUTO_MAPS_EDGE_PIXELS = 3.0
 AUTO_MAPS_RESOLUTION = (64, 160)  # the range of that resolution, in steps of 32
