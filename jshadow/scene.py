@@ -52,6 +52,7 @@ from .geometry import (
     bounding_sphere,
     cone_may_meet_sphere,
     fan_may_meet_sphere,
+    point_mesh_distance2,
     vertex_normals,
     with_center_anchors,
 )
@@ -84,6 +85,7 @@ from .visibility import (
     edgescan_grad_slots,
     edgescan_scan_slots,
     edgescan_slots,
+    halfspace_visibility_sh,
     image_fan_visibility_components,
     image_reach,
     is_closed_manifold,
@@ -118,6 +120,7 @@ __all__ = [
     "contact_ray_tests",
     "CONTACT_REACH",
     "CONTACT_GRID",
+    "CONTACT_LARGE_FACE",
     "CONTACT_NO_DERIVATIVE",
     "occluder_own_visibility",
     "clear_pose_caches",
@@ -1270,6 +1273,8 @@ def environment_visible_fraction(
 # were better there but not at 0.3-0.5 radii under a lamp-split map (spot_sunset 2.99 -> 3.26 %,
 # max 4.1 -> 5.3 %; BENCHMARKS.md "The default against the paper", eighth run)
 CONTACT_REACH = 0.3
+# faces with an edge longer than this fraction of the reach are also measured to (_large_faces)
+CONTACT_LARGE_FACE = 0.5
 CONTACT_GRID = (24, 48)  # θ × φ sphere grid of their visibility rays (48 × 96 gave nothing more)
 # receivers per chunk of their rays (jshadow._active.over_active): the power of two from 8 to 64 that
 # holds the near receivers (larger chunks run faster per receiver, smaller ones waste less: 2 near
@@ -1296,28 +1301,82 @@ def _nearest_vertex_d2(points: Float[Array, "M 3"], v: Float[Array, "V 3"]) -> F
     return jnp.maximum(jnp.min(d2, -1), 0.0)
 
 
-def _near_mesh(points: Float[Array, "P 3"], v: Float[Array, "V 3"]) -> Bool[Array, " P"]:
+def _near_mesh(
+    points: Float[Array, "P 3"], v: Float[Array, "V 3"], large: Int[Array, "B 3"] | None = None
+) -> Bool[Array, " P"]:
     """Which ``points`` lie within :data:`CONTACT_REACH` × the bounding radius of ``v`` from one of
-    its vertices (the nearest-vertex test only where the point is within reach of the sphere)."""
+    its vertices or from one of its ``large`` faces (:func:`_large_faces`; exact point–triangle
+    distances), the tests only where the point is within reach of the bounding sphere."""
     c, r = bounding_sphere(v)
     reach = CONTACT_REACH * r
     maybe = jnp.sum((points - c) ** 2, -1) < (r + reach) ** 2
     d2 = over_active(lambda p: _nearest_vertex_d2(p, v), maybe, (points,), jnp.inf)
+    if large is not None and large.shape[0]:
+        # a point within reach of a face lies within reach + L/√3 of one of its corners (L its
+        # longest edge): the faces are measured to only where the vertices leave it open
+        tri = v[large]
+        longest = jnp.sqrt(jnp.max(jnp.sum((tri - jnp.roll(tri, 1, axis=1)) ** 2, -1)))
+        open_ = maybe & (d2 >= reach * reach) & (d2 <= (reach + longest / math.sqrt(3.0)) ** 2)
+        faces_d2 = over_active(lambda p: point_mesh_distance2(p, v, large), open_, (points,), jnp.inf)
+        d2 = jnp.minimum(d2, faces_d2)
     return maybe & (d2 < reach * reach)
+
+
+def _large_faces(occ: MeshOccluder) -> np.ndarray | None:
+    """(B, 3) the faces of a mesh occluder whose longest edge in its rest pose exceeds
+    :data:`CONTACT_LARGE_FACE` × :data:`CONTACT_REACH` bounding radii, for the near test
+    (:func:`_near_mesh`); None where there are none or the rest pose is traced.
+
+    Any point of a triangle lies within L/√3 of its nearest corner (L its longest edge): the
+    nearest-vertex test alone misses a receiver near the middle of a face larger than the reach (a
+    box's side); of the faces left to it, whose longest edge is at most half the reach, it finds
+    every receiver within 0.71 reaches of the face (a vertex then lies within 0.71 + 0.5/√3 < 1),
+    so it misses only some in the outer 0.29 of the reach. Chosen on the rest pose: a deformation that
+    stretches a small face is not followed (the bunny: 215 of its 3798 faces, mostly its base; the
+    spot cow none; a cube all)."""
+    u, f = _concrete(occ.unit_vertices), _concrete(occ.faces)
+    if u is None or f is None:
+        return None
+    u = np.asarray(u, np.float64)
+    f = np.asarray(f, np.int64)
+    longest = np.max([np.linalg.norm(u[f[:, k]] - u[f[:, (k + 1) % 3]], axis=1) for k in range(3)], axis=0)
+    big = f[longest > CONTACT_LARGE_FACE * CONTACT_REACH]  # the rest pose's bounding radius is 1
+    return big.astype(np.int32) if big.shape[0] else None
 
 
 _near_mesh_jit = jax.jit(_near_mesh)
 
 
-def _contact_near(scene: Scene, t) -> Bool[Array, "N m"]:
+def _contact_above(scene: Scene, t, near: Bool[Array, "N m"]) -> Bool[Array, ""]:
+    """Whether every mesh occluder lies on or above the tangent plane of each fixed receiver near
+    it (``near`` of :func:`_contact_near`): its lowest vertex's height over the plane ≥ 0 (the
+    faces are the vertices' convex combinations), so no ray below that plane can hit it."""
+    points = jax.lax.stop_gradient(scene.receivers.points)
+    normals = jax.lax.stop_gradient(scene.receivers.normals)
+    ok = jnp.asarray(True)
+    for i, occ in enumerate(scene.occluders):
+        if isinstance(occ, MeshOccluder):
+            v = jax.lax.stop_gradient(occ.vertices(t))
+
+            def lowest(p, q, v=v):  # (M,) the lowest vertex's height over each receiver's plane
+                return jnp.min(q @ v.T, -1) - jnp.sum(p * q, -1)
+
+            low = over_active(lowest, near[: points.shape[0], i], (points, normals), jnp.inf)
+            ok = ok & jnp.all(low >= 0.0)
+    return ok
+
+
+def _contact_near(scene: Scene, t, large: tuple = ()) -> Bool[Array, "N m"]:
     """``near`` of :func:`contact_rows_at_time` (a mask: no derivative): tested at the fixed
-    receivers, False at the own vertices that follow them."""
+    receivers, False at the own vertices that follow them. ``large``: per occluder its
+    :func:`_large_faces` (or None), or empty for none."""
     points = jax.lax.stop_gradient(scene.receivers.points)
     own = receivers_at_time(scene, t)[0].shape[0] - points.shape[0]  # static
     cols = []
-    for occ in scene.occluders:
+    for i, occ in enumerate(scene.occluders):
         if isinstance(occ, MeshOccluder):
-            cols.append(_near_mesh(points, jax.lax.stop_gradient(occ.vertices(t))))
+            big = large[i] if large else None
+            cols.append(_near_mesh(points, jax.lax.stop_gradient(occ.vertices(t)), big))
         else:
             cols.append(jnp.zeros(points.shape[0], bool))
     near = jnp.stack(cols, -1)
@@ -1332,9 +1391,14 @@ def _contact_chunk(count: int | None) -> int:
     return int(min(hi, max(lo, 1 << max(0, count - 1).bit_length())))
 
 
-def _contact_rows(scene: Scene, t, lighting: Lighting, near: Bool[Array, "N m"], chunk: int = 32):
+def _contact_rows(
+    scene: Scene, t, lighting: Lighting, near: Bool[Array, "N m"], chunk: int = 32, above: bool | None = None
+):
     """The arrays of :func:`contact_rows_at_time` for the mask ``near`` of :func:`_contact_near`,
-    the rays in chunks of ``chunk`` receivers (static)."""
+    the rays in chunks of ``chunk`` receivers (static). ``above`` (static): :func:`_contact_above`
+    as known on the host, the visibility rays then over the half of the grid above each receiver's
+    plane only (:func:`jshadow.visibility.halfspace_visibility_sh`) or over all of it; None
+    (traced): decided in the trace (``lax.cond``)."""
     m = scene.method
     n = m.sh_bands
     # the fixed receivers only (the own vertices that follow them are never near: padded below)
@@ -1356,16 +1420,26 @@ def _contact_rows(scene: Scene, t, lighting: Lighting, near: Bool[Array, "N m"],
     def forward(x):
         pts, nrm, verts, lights, balls = x
         rows = [jnp.zeros((n_rec, n * n), dtype)] * len(scene.occluders)
+        flag = _contact_above(scene, t, near_all) if above is None else None
         d, w = sh.sphere_grid(*CONTACT_GRID, dtype)
         basis = sh.sh_basis(d, n) * w[:, None]  # (K, n²) quadrature weights folded in
         centres = []
         for (i, _, faces), v in zip(meshes, verts, strict=True):
             centres.append(bounding_sphere(v)[0])
 
-            def cast(p, v=v, faces=faces):
+            def half(p, q, v=v, faces=faces):  # the mesh above every near receiver's plane
+                return halfspace_visibility_sh(p, q, v, faces, n, CONTACT_GRID)
+
+            def whole(p, q, v=v, faces=faces):
                 return (1.0 - ray_fan_any_hit(p, d, v, faces).astype(dtype)) @ basis
 
-            rows[i] = over_active(cast, near[:, i], (pts,), 0.0, chunks=chunks)
+            def cast_rows(cast, i=i):
+                return over_active(cast, near[:, i], (pts, nrm), 0.0, chunks=chunks)
+
+            if above is None:  # traced: decided in the trace
+                rows[i] = jax.lax.cond(flag, lambda: cast_rows(half), lambda: cast_rows(whole))
+            else:
+                rows[i] = cast_rows(half if above else whole)
         any_near = jnp.any(near, -1)
 
         def blocked(p, dirs, gates=None):
@@ -1426,6 +1500,7 @@ def _contact_rows(scene: Scene, t, lighting: Lighting, near: Bool[Array, "N m"],
 
 
 _contact_near_jit = eqx.filter_jit(_contact_near)
+_contact_above_jit = eqx.filter_jit(_contact_above)
 _contact_rows_jit = eqx.filter_jit(_contact_rows)
 
 
@@ -1450,7 +1525,7 @@ def contact_ray_tests(
             v, f = _vertices_at(occ, jnp.float32(t)), _concrete(occ.faces)
             if _concrete(v) is None or f is None:
                 return math.inf
-            near = int(jnp.sum(_near_mesh_jit(jnp.asarray(points, v.dtype), v)))
+            near = int(jnp.sum(_near_mesh_jit(jnp.asarray(points, v.dtype), v, _large_faces(occ))))
             chunk = _contact_chunk(near)
             total += -(-near // chunk) * chunk * rays * f.shape[0]
         worst = max(worst, total)
@@ -1463,7 +1538,8 @@ def contact_rows_at_time(scene: Scene, t, lighting: Lighting | None = None) -> t
     that near.
 
     A fixed receiver (``scene.receivers``; not an occluder's own vertex) is *near* mesh occluder i
-    when one of the mesh's vertices lies within :data:`CONTACT_REACH` × its bounding radius. The
+    when one of the mesh's vertices, or one of its faces larger than about the reach
+    (:func:`_large_faces`), lies within :data:`CONTACT_REACH` × its bounding radius. The
     field extrapolates a mesh's visibility inward from its shell (1.5 radii by default), which fails
     at a contact: a mesh just above its floor. There, instead:
 
@@ -1480,8 +1556,10 @@ def contact_rows_at_time(scene: Scene, t, lighting: Lighting | None = None) -> t
     both in place of the images' lookups (:func:`image_fractions`) at receivers near any mesh.
     Rows of other receivers are 0 (``rows``) or 1 and are not read. The nearest-vertex test, the
     rays and the fractions run only on chunks holding a receiver that needs them
-    (:func:`jshadow._active.over_active`). A receiver near the middle of a face much larger than the
-    reach is not found (the test measures to vertices). Binary visibility: differentiating with
+    (:func:`jshadow._active.over_active`). Where every mesh lies on or above the tangent plane of
+    each near receiver (a floor under them), the visibility rays are cast over the half of the grid
+    above that plane only, the rest free (:func:`jshadow.visibility.halfspace_visibility_sh`: the
+    same rule, turned, at half the rays). Binary visibility: differentiating with
     respect to the meshes, the receivers or the lights raises :data:`CONTACT_NO_DERIVATIVE`.
     """
     if not uses_contact(scene):
@@ -1489,12 +1567,17 @@ def contact_rows_at_time(scene: Scene, t, lighting: Lighting | None = None) -> t
     if lighting is None:
         lighting = scene_lighting(scene)
     t = jnp.asarray(t, scene.receivers.points.dtype)
-    near = _contact_near_jit(scene, t)
+    large = tuple(_large_faces(o) if isinstance(o, MeshOccluder) else None for o in scene.occluders)
+    near = _contact_near_jit(scene, t, large)
     concrete = _concrete(near)
     if concrete is not None and not concrete.any():
         return None  # no ray stage at all
     count = None if concrete is None else int(concrete.any(-1).sum())
-    return _contact_rows_jit(scene, t, lighting, near, _contact_chunk(count))
+    above = None
+    if concrete is not None:  # else decided in the trace
+        above = _concrete(_contact_above_jit(scene, t, near))
+        above = None if above is None else bool(above)
+    return _contact_rows_jit(scene, t, lighting, near, _contact_chunk(count), above)
 
 
 # BSV occluders of one coefficient shape up to this many are traced one by one; more share one

@@ -19,6 +19,8 @@ from ._deform import SquashStretch as SquashStretch
 from ._deform import Taper as Taper
 from ._deform import Twist as Twist
 from ._deform import make_deformation as make_deformation
+from ._distance import point_mesh_distance2 as point_mesh_distance2
+from ._distance import point_triangle_distance2 as point_triangle_distance2
 from ._io import load_mesh as load_mesh
 from ._io import merge_duplicate_vertices as merge_duplicate_vertices
 from ._io import save_mesh as save_mesh

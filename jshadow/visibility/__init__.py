@@ -12,6 +12,7 @@
   11–31× faster than the ray-cast visibility on whole frames).
 * :mod:`._edgescan_scan`: the same derivative as a sum over the edge-scan's pixel columns and rows,
   with the exact layer count at every crossing (faster on large meshes, noisier per vertex).
+* :mod:`._halfspace`: a mesh's visibility SH from points it lies wholly above (half the rays).
 * :mod:`._own`: a mesh's visibility of itself at its own vertices, by rays (self-shadowing).
 * :mod:`._own_maps`: the same from entry-face depth images and rays against nearby faces only.
 * :mod:`._own_exact`: exact tests for the (vertex, lamp) pairs next to a silhouette in those images.
@@ -49,6 +50,7 @@ from ._edgescan_scan import bsv_mesh_edgescan_scan_diff as bsv_mesh_edgescan_sca
 from ._edgescan_scan import edgescan_scan_slots as edgescan_scan_slots
 from ._frames import bsv_frames as bsv_frames
 from ._frames import bsv_grid_angles as bsv_grid_angles
+from ._halfspace import halfspace_visibility_sh as halfspace_visibility_sh
 from ._images import OcclusionImages as OcclusionImages
 from ._images import bsv_with_occlusion_images as bsv_with_occlusion_images
 from ._images import image_fan_visibility as image_fan_visibility
