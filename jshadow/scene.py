@@ -1276,11 +1276,14 @@ CONTACT_REACH = 0.3
 # faces with an edge longer than this fraction of the reach are also measured to (_large_faces)
 CONTACT_LARGE_FACE = 0.5
 CONTACT_GRID = (24, 48)  # θ × φ sphere grid of their visibility rays (48 × 96 gave nothing more)
-# receivers per chunk of their rays (jshadow._active.over_active): the power of two from 8 to 64 that
-# holds the near receivers (larger chunks run faster per receiver, smaller ones waste less: 2 near
-# receivers 31 ms in chunks of 8, 92 ms in chunks of 64; 42 near 90 ms in one chunk of 64, 107 ms in
-# two of 32; 91 near 228 ms in chunks of 8, 116 in chunks of 64); 32 where the count is traced
-_CONTACT_ROWS = (8, 64)
+# receivers per chunk of their rays (jshadow._active.over_active): the power of two from 8 to 128
+# with the least chunks × (size + _CONTACT_CHUNK_COST) for the near count (each chunk costs about as
+# much as 32 receivers' rays more: 2 near receivers 31 ms in chunks of 8, 92 ms in chunks of 64; 42
+# near 90 ms in one chunk of 64, 107 ms in two of 32; 91 near 94 ms in two chunks of 64, 78 ms in
+# one of 128; 172 near 181 ms in three of 64, 203 ms in two of 128; 366 near 273 ms in six of 64,
+# 210 ms in three of 128); 32 where the count is traced
+_CONTACT_ROWS = (8, 128)
+_CONTACT_CHUNK_COST = 32
 CONTACT_NO_DERIVATIVE = (
     "method.contact_visibility = 'rays' casts binary visibility from the receivers next to a mesh "
     "occluder, which has no derivative with respect to the mesh, the receivers or the lights: "
@@ -1388,7 +1391,8 @@ def _contact_chunk(count: int | None) -> int:
     lo, hi = _CONTACT_ROWS
     if count is None:
         return 32
-    return int(min(hi, max(lo, 1 << max(0, count - 1).bit_length())))
+    sizes = [1 << k for k in range(lo.bit_length() - 1, hi.bit_length())]
+    return min(sizes, key=lambda c: (-(-max(count, 1) // c) * (c + _CONTACT_CHUNK_COST), -c))
 
 
 def _contact_rows(
