@@ -130,15 +130,16 @@ class Method:
 
     ``contact_visibility`` chooses the visibility at the fixed receivers (``Scene.receivers``, not
     an occluder's own vertices) next to a mesh occluder: within :data:`jshadow.scene.CONTACT_REACH`
-    (0.3) of its bounding radius from one of its vertices, where the field's extrapolation inward
-    from the shell fails (a mesh resting just above its floor). "field" (default) keeps the field's
-    visibility and the images' lookups there; "rays" casts that mesh's visibility SH from 24 × 48
-    rays over the sphere, and the sphere lights' and environment lights' visible fractions by exact
-    rays against every occluder (:func:`jshadow.scene.contact_rows_at_time`): the untuned spot cow
-    0.05 above its floor under a sphere light and a sky 2.12 → 0.54 % relative RMSE (max 27.7 →
-    4.2 %), the bunny 0.05 above its floor under the studio map 0.70 → 0.41 % (max 11.9 → 2.7 %),
-    for 80–125 ms of rays there at a 32² plane, about 1–1.3 ms per such receiver at 128² (BENCHMARKS.md
-    "The default against the paper", eighth run).
+    (0.3) of its bounding radius from one of its vertices or of a face larger than half that, where
+    the field's extrapolation inward from the shell fails (a mesh resting just above its floor).
+    "field" (default) keeps the field's visibility and the images' lookups there; "rays" casts that
+    mesh's visibility SH from a 24 × 48 sphere grid's rays (only the half above the receiver's plane
+    where every mesh lies above it), and the sphere lights' and environment lights' visible
+    fractions by exact rays against every occluder (:func:`jshadow.scene.contact_rows_at_time`): the
+    untuned spot cow 0.05 above its floor under a sphere light and a sky 2.12 → 0.54 % relative RMSE
+    (max 27.7 → 4.2 %), the bunny 0.05 above its floor under the studio map 0.70 → 0.41 % (max
+    11.9 → 2.7 %), for 60–80 ms of rays there at a 32² plane, about 0.6 ms per such receiver at 64²
+    (BENCHMARKS.md "The default against the paper", eighth and ninth runs).
     :class:`jshadow.Renderer` makes them once for shapes that do not change, every frame for a
     deforming mesh. Binary visibility: differentiating them raises.
 

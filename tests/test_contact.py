@@ -5,13 +5,14 @@ Claims tested: the receivers marked near are exactly those within the reach of a
 brute force) or of a face larger than the reach (a cube's exact distance), own vertices never;
 their cast visibility SH is the analytic cap of the sphere the icosphere approximates, and the
 cube's by a fine grid; cast over the half of the grid above a receiver's plane it equals the whole
-turned grid's, and a mesh reaching below the plane gets the whole grid (in a trace too); under a constant sky their irradiance matches the closed form of a sphere
-occluder far better than the field's; their sphere-light and environment-light fractions match the
-exact ray–sphere tests that the images' path uses for a sphere occluder; a mesh far from every
-receiver gives None (no work, the read-out path kept); the Renderer makes them once for shapes that
-do not change and every frame for a deforming mesh, in one call and in pieces, as ``render`` does;
-differentiating them raises in words, ``"field"`` differentiates; config keys are read, checked and
-chosen by "auto" (over a deforming mesh by the ray tests a frame would take).
+turned grid's, and a mesh reaching below the plane gets the whole grid (in a trace too); under a
+constant sky their irradiance matches the exact sphere's through the same path (and the closed form
+within that path's floor) far better than the field's; their sphere-light and environment-light
+fractions match the exact ray–sphere tests that the images' path uses for a sphere occluder; a mesh
+far from every receiver gives None (no work, the read-out path kept); the Renderer makes them once
+for shapes that do not change and every frame for a deforming mesh, in one call and in pieces, as
+``render`` does; differentiating them raises in words, ``"field"`` differentiates; config keys are
+read, checked and chosen by "auto" (over a deforming mesh by the ray tests a frame would take).
 """
 
 import dataclasses

@@ -354,7 +354,8 @@ def auto_light_path(
     the map's bright part the transfer carries its dim rest, the animated bunny's vertices 1.40 %
     either way).
     Where every mesh keeps its shape, ``contact_visibility = "rays"``: the fixed receivers within
-    :data:`jshadow.scene.CONTACT_REACH` of a mesh's bounding radius from its vertices take its
+    :data:`jshadow.scene.CONTACT_REACH` of a mesh's bounding radius from its vertices (or its
+    large faces) take its
     visibility, and the lights' visible fractions, from exact rays instead of the field's
     extrapolation inward and the images' lookups, made once (:func:`jshadow.scene.contact_rows_at_time`;
     the untuned spot cow 0.05 above its floor under a sphere light and a sky 2.12 → 0.54 %, the
@@ -398,6 +399,7 @@ def auto_light_path(
 
         lamps = k if images else 0
         cap = AUTO_LIGHT_CAP if images and has_lights else (0, 0)
+        # the whole grid's rays: where the mesh lies above the receivers' planes half of them are cast
         rays = math.prod(CONTACT_GRID) + lamps + (cap[0] * cap[1] if has_lights else 0)
         if contact_ray_tests(occluders, receivers, rays) <= AUTO_CONTACT_TESTS:
             contact = {"contact_visibility": "rays"}
