@@ -25,6 +25,7 @@ Sphere lights do not occlude (they are emitters only), matching :mod:`jshadow.re
 from __future__ import annotations
 
 import functools
+import hashlib
 import math
 from collections.abc import Sequence
 
@@ -987,11 +988,13 @@ _LAMP_IMAGES: list = []  # [(key, LampImages)] of concrete poses, most recent la
 
 def clear_pose_caches() -> None:
     """Forget the casts and images kept per concrete pose (:func:`occluder_own_visibility`,
-    :func:`occluder_own_light_visibility`, :func:`occluder_lamp_images`): what a benchmark of
+    :func:`occluder_own_light_visibility`, :func:`occluder_lamp_images`, :func:`render_at`'s
+    contact rows): what a benchmark of
     fresh frames of one pose calls between them, so that each makes everything again."""
     _OWN.clear()
     _OWN_LIGHTS.clear()
     _LAMP_IMAGES.clear()
+    _CONTACT.clear()
 
 
 def _lamp_images_of(v: np.ndarray, faces: np.ndarray, directions: np.ndarray, resolution: int) -> LampImages:
@@ -2169,6 +2172,37 @@ def image_fractions(
     return fractions, env_fraction
 
 
+_CONTACT: list = []  # [(key, contact rows)] of concrete scenes and times, most recent last (at most 4)
+
+
+def _kept_contact_rows(scene: Scene, t, lighting: Lighting) -> tuple | None:
+    """:func:`contact_rows_at_time`, kept for :func:`render_at` called again on the same concrete
+    scene, time and lighting (the last 4; :class:`jshadow.Renderer` keeps its own): keyed by the
+    pytrees' structure and a digest of every leaf's bytes, with the contact constants. Anything
+    traced: made anew, nothing kept."""
+    if not uses_contact(scene):
+        return None
+    leaves, tree = jax.tree_util.tree_flatten((scene, lighting, t))
+    arrays = [_concrete(x) if isinstance(x, (jax.Array, np.ndarray)) else x for x in leaves]
+    if any(a is None for a in arrays):
+        return contact_rows_at_time(scene, t, lighting)
+    digest = hashlib.blake2b(digest_size=16)
+    for a in arrays:
+        if isinstance(a, np.ndarray):
+            digest.update(repr((a.shape, str(a.dtype))).encode())
+            digest.update(np.ascontiguousarray(a).tobytes())
+        else:
+            digest.update(repr(a).encode())
+    key = (tree, digest.digest(), CONTACT_REACH, CONTACT_GRID, CONTACT_LARGE_FACE)
+    hit = [rows for k, rows in _CONTACT if k == key]
+    if hit:
+        return hit[0]
+    rows = contact_rows_at_time(scene, t, lighting)
+    _CONTACT.append((key, rows))
+    del _CONTACT[:-4]
+    return rows
+
+
 def render_at(
     scene: Scene,
     t,
@@ -2191,7 +2225,7 @@ def render_at(
     images = with_lamp_images(scene, t, images)
     points, normals = receivers_at_time(scene, t)
     lighting = scene_lighting(scene)
-    contact = contact_rows_at_time(scene, t, lighting)
+    contact = _kept_contact_rows(scene, t, lighting)
     vis, dist = occluder_visibilities(scene, bsvs, points, own, plane_first=True, contact=contact)
     shared = shared_normal_count(scene.receivers.normals)  # the plane's receivers lead `points`
     fractions, env_fraction = image_fractions(scene, images, lighting, points, normals, own, contact)
@@ -2221,6 +2255,8 @@ def render(scene: Scene, frame: int = 0, sphere_path: str = "analytic") -> Rende
     With ``self_shadow`` and ``method.self_visibility = "rays"`` the occluders' own-vertex
     visibility is cast for every pose not seen before (seconds for a 2k-vertex mesh; the last 8
     concrete poses are kept, :func:`occluder_own_visibility`) and is not differentiable with respect
-    to their vertices.
+    to their vertices. With ``method.contact_visibility = "rays"`` the receivers next to a mesh are
+    cast for every concrete scene, time and lighting not seen before (the last 4 kept, by a digest
+    of their arrays; :func:`contact_rows_at_time`), likewise not differentiable.
     """
     return render_at(scene, frame_time(frame, scene.n_frames), sphere_path=sphere_path)

@@ -11,8 +11,9 @@ within that path's floor) far better than the field's; their sphere-light and en
 fractions match the exact ray–sphere tests that the images' path uses for a sphere occluder; a mesh
 far from every receiver gives None (no work, the read-out path kept); the Renderer makes them once
 for shapes that do not change and every frame for a deforming mesh, in one call and in pieces, as
-``render`` does; differentiating them raises in words, ``"field"`` differentiates; config keys are
-read, checked and chosen by "auto" (over a deforming mesh by the ray tests a frame would take).
+``render`` does, which keeps the rows of a scene and time it has seen (not of a traced one);
+differentiating them raises in words, ``"field"`` differentiates; config keys are read, checked and
+chosen by "auto" (over a deforming mesh by the ray tests a frame would take).
 """
 
 import dataclasses
@@ -241,6 +242,30 @@ def test_renderer_reuses_static_contact_and_matches_render():
     np.testing.assert_allclose(got, want, rtol=2e-6, atol=1e-6)
     pieces = np.asarray(Renderer(scene, chunk=7).frame(1)[0].irradiance)
     np.testing.assert_allclose(pieces, want, rtol=2e-6, atol=1e-6)
+
+
+def test_render_keeps_the_rows_of_a_scene_it_has_seen(monkeypatch):
+    import jshadow.scene as scene_mod
+
+    calls = []
+    made = scene_mod.contact_rows_at_time
+    monkeypatch.setattr(scene_mod, "contact_rows_at_time", lambda *a: calls.append(1) or made(*a))
+    scene_mod.clear_pose_caches()
+    scene = _scene(n_frames=3)
+    first = np.asarray(render(scene, 1).irradiance)
+    again = np.asarray(render(scene, 1).irradiance)
+    assert len(calls) == 1
+    np.testing.assert_array_equal(again, first)
+    # another pose, another receiver plane or another light: made anew
+    render(_scene(center=(0.0, 0.56, 0.0), n_frames=3), 1)
+    render(dataclasses.replace(scene, environment=Environment(f32(2.0, 1.0, 1.0))), 1)
+    assert len(calls) == 3
+    scene_mod.clear_pose_caches()
+    render(scene, 1)
+    assert len(calls) == 4
+    # a traced time: made in the trace, nothing kept
+    jax.jit(lambda t: render_at(scene, t).irradiance)(jnp.float32(0.5))
+    assert len(calls) == 5 and len(scene_mod._CONTACT) == 1
 
 
 def test_deforming_mesh_is_cast_every_frame():
