@@ -138,8 +138,9 @@ class Method:
     fractions by exact rays against every occluder (:func:`jshadow.scene.contact_rows_at_time`): the
     untuned spot cow 0.05 above its floor under a sphere light and a sky 2.12 → 0.54 % relative RMSE
     (max 27.7 → 4.2 %), the bunny 0.05 above its floor under the studio map 0.70 → 0.41 % (max
-    11.9 → 2.7 %), for 60–80 ms of rays there at a 32² plane, about 0.6 ms per such receiver at 64²
-    (BENCHMARKS.md "The default against the paper", eighth and ninth runs).
+    11.9 → 2.7 %), for 57–78 ms of rays there at a 32² plane, 0.6–1.1 ms per such receiver at 64²
+    (the bunny's 366 in 210 ms, the cow's 172 in 181 ms; BENCHMARKS.md "The default against the
+    paper", eighth and ninth runs).
     :class:`jshadow.Renderer` makes them once for shapes that do not change, every frame for a
     deforming mesh. Binary visibility: differentiating them raises.
 

@@ -1339,15 +1339,30 @@ def _large_faces(occ: MeshOccluder) -> np.ndarray | None:
     every receiver within 0.71 reaches of the face (a vertex then lies within 0.71 + 0.5/√3 < 1),
     so it misses only some in the outer 0.29 of the reach. Chosen on the rest pose: a deformation that
     stretches a small face is not followed (the bunny: 215 of its 3798 faces, mostly its base; the
-    spot cow none; a cube all)."""
+    spot cow none; a cube all).
+
+    Kept for the rest pose's arrays (JAX arrays are immutable: the same objects, the same faces),
+    so a renderer's frames of one occluder copy and measure them once, not every frame (0.2–0.7 ms
+    a call on the scenes of ``experiments/defaults.py``)."""
+    limit = CONTACT_LARGE_FACE * CONTACT_REACH  # the rest pose's bounding radius is 1
+    for u, f, lim, big in _LARGE:
+        if u is occ.unit_vertices and f is occ.faces and lim == limit:
+            return big
     u, f = _concrete(occ.unit_vertices), _concrete(occ.faces)
     if u is None or f is None:
         return None
     u = np.asarray(u, np.float64)
     f = np.asarray(f, np.int64)
     longest = np.max([np.linalg.norm(u[f[:, k]] - u[f[:, (k + 1) % 3]], axis=1) for k in range(3)], axis=0)
-    big = f[longest > CONTACT_LARGE_FACE * CONTACT_REACH]  # the rest pose's bounding radius is 1
-    return big.astype(np.int32) if big.shape[0] else None
+    big = f[longest > limit]
+    big = big.astype(np.int32) if big.shape[0] else None
+    if isinstance(occ.unit_vertices, jax.Array) and isinstance(occ.faces, jax.Array):
+        _LARGE.append((occ.unit_vertices, occ.faces, limit, big))
+        del _LARGE[:-8]
+    return big
+
+
+_LARGE: list = []  # [(rest pose, faces, limit, large faces)] of the last 8 occluders measured
 
 
 _near_mesh_jit = jax.jit(_near_mesh)
