@@ -121,6 +121,9 @@ __all__ = [
     "contact_ray_tests",
     "CONTACT_REACH",
     "CONTACT_GRID",
+    "CONTACT_GRID_DIM",
+    "CONTACT_SH_SHARE",
+    "contact_grid",
     "CONTACT_LARGE_FACE",
     "CONTACT_NO_DERIVATIVE",
     "occluder_own_visibility",
@@ -1279,12 +1282,22 @@ CONTACT_REACH = 0.3
 # faces with an edge longer than this fraction of the reach are also measured to (_large_faces)
 CONTACT_LARGE_FACE = 0.5
 CONTACT_GRID = (24, 48)  # θ × φ sphere grid of their visibility rays (48 × 96 gave nothing more)
-# receivers per chunk of their rays (jshadow._active.over_active): the power of two from 8 to 128
-# with the least chunks × (size + _CONTACT_CHUNK_COST) for the near count (each chunk costs about as
-# much as 32 receivers' rays more: 2 near receivers 31 ms in chunks of 8, 92 ms in chunks of 64; 42
-# near 90 ms in one chunk of 64, 107 ms in two of 32; 91 near 94 ms in two chunks of 64, 78 ms in
-# one of 128; 172 near 181 ms in three of 64, 203 ms in two of 128; 366 near 273 ms in six of 64,
-# 210 ms in three of 128); 32 where the count is traced
+# the grid where the n-band path carries at most CONTACT_SH_SHARE of the light that the rows shadow
+# (a lat-long map's rest once its bright part is split into lamps, which the rays find exactly):
+# a quarter of the rays, whose larger quadrature error is scaled by that share (the five scenes
+# under the studio map, whose rest holds 11.9 % of its energy: every error the same to the digit
+# as with CONTACT_GRID, BENCHMARKS.md "The default against the paper", tenth run)
+CONTACT_GRID_DIM = (12, 24)
+CONTACT_SH_SHARE = 0.25
+# receivers per chunk of their rays (jshadow._active.over_active): of the powers of two from 8 to
+# 128 and the multiples of 32 from 64 to 128, the size with the least chunks × (size +
+# _CONTACT_CHUNK_COST) for the near count (each chunk costs about as much as 32 receivers' rays
+# more: 2 near receivers 31 ms in chunks of 8, 92 ms in chunks of 64; 42 near 90 ms in one chunk of
+# 64, 107 ms in two of 32; 91 near 94 ms in two chunks of 64, 78 ms in one of 128; 172 near 181 ms
+# in three of 64, 203 ms in two of 128; 366 near 273 ms in six of 64, 210 ms in three of 128. With
+# chunks of 96: the low bunny's 91 near on the coarser grid 36 ms against 48 ms in one of 128, the
+# low cow's 172 near 159 ms in two of 96, 188 ms in three of 64, 217 ms in two of 128; the low
+# bunny's 366 near 147 ms in four of 96, 143 ms in three of 128); 32 where the count is traced
 _CONTACT_ROWS = (8, 128)
 _CONTACT_CHUNK_COST = 32
 CONTACT_NO_DERIVATIVE = (
@@ -1409,18 +1422,50 @@ def _contact_chunk(count: int | None) -> int:
     lo, hi = _CONTACT_ROWS
     if count is None:
         return 32
-    sizes = [1 << k for k in range(lo.bit_length() - 1, hi.bit_length())]
+    sizes = sorted({1 << k for k in range(lo.bit_length() - 1, hi.bit_length())} | set(range(64, hi + 1, 32)))
     return min(sizes, key=lambda c: (-(-max(count, 1) // c) * (c + _CONTACT_CHUNK_COST), -c))
 
 
+def contact_grid(scene: Scene, lighting: Lighting | None = None) -> tuple[int, int]:
+    """The (θ, φ) sphere grid of the contact visibility rays (:func:`contact_rows_at_time`).
+
+    Their rows shadow the n-band part of the light only: the environment's SH, which is the rest
+    of a lat-long map once its bright part is split into lamps (the lamps, and sphere lights,
+    which a split map's ``light_visibility = "images"`` shadows through the images, get exact
+    rays of their own there). :data:`CONTACT_GRID_DIM` (a quarter of the rays) where the map is
+    split and its rest carries at most :data:`CONTACT_SH_SHARE` of its energy (the rest's SH
+    constant term against the bright part's, luminance = mean of RGB); else
+    :data:`CONTACT_GRID`, also where the lighting is traced."""
+    if lighting is None:
+        lighting = scene_lighting(scene)
+    if lighting.env_lights is None or lighting.env_bright_sh is None:
+        return tuple(CONTACT_GRID)
+    rest, bright = _concrete(lighting.env_sh), _concrete(lighting.env_bright_sh)
+    if rest is None or bright is None:
+        return tuple(CONTACT_GRID)
+    rest_dc, bright_dc = float(np.mean(rest[0])), float(np.mean(bright[0]))
+    total = rest_dc + bright_dc
+    if total > 0 and rest_dc >= 0 and rest_dc <= CONTACT_SH_SHARE * total:
+        return tuple(CONTACT_GRID_DIM)
+    return tuple(CONTACT_GRID)
+
+
 def _contact_rows(
-    scene: Scene, t, lighting: Lighting, near: Bool[Array, "N m"], chunk: int = 32, above: bool | None = None
+    scene: Scene,
+    t,
+    lighting: Lighting,
+    near: Bool[Array, "N m"],
+    chunk: int = 32,
+    above: bool | None = None,
+    grid: tuple[int, int] = CONTACT_GRID,
 ):
     """The arrays of :func:`contact_rows_at_time` for the mask ``near`` of :func:`_contact_near`,
     the rays in chunks of ``chunk`` receivers (static). ``above`` (static): :func:`_contact_above`
     as known on the host, the visibility rays then over the half of the grid above each receiver's
     plane only (:func:`jshadow.visibility.halfspace_visibility_sh`) or over all of it; None
-    (traced): decided in the trace (``lax.cond``)."""
+    (traced): decided in the trace (``lax.cond``). ``grid`` (static): the rays' (θ, φ) sphere
+    grid, :func:`contact_grid`."""
+    grid = tuple(int(g) for g in grid)
     m = scene.method
     n = m.sh_bands
     # the fixed receivers only (the own vertices that follow them are never near: padded below)
@@ -1443,14 +1488,14 @@ def _contact_rows(
         pts, nrm, verts, lights, balls = x
         rows = [jnp.zeros((n_rec, n * n), dtype)] * len(scene.occluders)
         flag = _contact_above(scene, t, near_all) if above is None else None
-        d, w = sh.sphere_grid(*CONTACT_GRID, dtype)
+        d, w = sh.sphere_grid(*grid, dtype)
         basis = sh.sh_basis(d, n) * w[:, None]  # (K, n²) quadrature weights folded in
         centres = []
         for (i, _, faces), v in zip(meshes, verts, strict=True):
             centres.append(bounding_sphere(v)[0])
 
             def half(p, q, v=v, faces=faces):  # the mesh above every near receiver's plane
-                return halfspace_visibility_sh(p, q, v, faces, n, CONTACT_GRID)
+                return halfspace_visibility_sh(p, q, v, faces, n, grid)
 
             def whole(p, q, v=v, faces=faces):
                 return (1.0 - ray_fan_any_hit(p, d, v, faces).astype(dtype)) @ basis
@@ -1565,8 +1610,9 @@ def contact_rows_at_time(scene: Scene, t, lighting: Lighting | None = None) -> t
     field extrapolates a mesh's visibility inward from its shell (1.5 radii by default), which fails
     at a contact: a mesh just above its floor. There, instead:
 
-    * ``rows`` (N, m, n²): mesh i's visibility SH cast by rays along a :data:`CONTACT_GRID` sphere
-      grid (Gauss–Legendre × uniform quadrature), in place of its field's
+    * ``rows`` (N, m, n²): mesh i's visibility SH cast by rays along a sphere grid
+      (Gauss–Legendre × uniform quadrature; :data:`CONTACT_GRID`, or :data:`CONTACT_GRID_DIM` where
+      the n-band path carries little of the light, :func:`contact_grid`), in place of its field's
       (:func:`occluder_visibilities`, with ``near`` (N, m) bool saying where);
     * ``lights`` (N, L): each sphere light's cosine-weighted visible fraction over the same
       ``method.light_cap`` cap directions as :func:`light_visible_fractions`, by exact rays against
@@ -1599,7 +1645,8 @@ def contact_rows_at_time(scene: Scene, t, lighting: Lighting | None = None) -> t
     if concrete is not None:  # else decided in the trace
         above = _concrete(_contact_above_jit(scene, t, near))
         above = None if above is None else bool(above)
-    return _contact_rows_jit(scene, t, lighting, near, _contact_chunk(count), above)
+    grid = contact_grid(scene, lighting)
+    return _contact_rows_jit(scene, t, lighting, near, _contact_chunk(count), above, grid)
 
 
 # BSV occluders of one coefficient shape up to this many are traced one by one; more share one
@@ -2208,7 +2255,15 @@ def _kept_contact_rows(scene: Scene, t, lighting: Lighting) -> tuple | None:
             digest.update(np.ascontiguousarray(a).tobytes())
         else:
             digest.update(repr(a).encode())
-    key = (tree, digest.digest(), CONTACT_REACH, CONTACT_GRID, CONTACT_LARGE_FACE)
+    key = (
+        tree,
+        digest.digest(),
+        CONTACT_REACH,
+        CONTACT_GRID,
+        CONTACT_GRID_DIM,
+        CONTACT_SH_SHARE,
+        CONTACT_LARGE_FACE,
+    )
     hit = [rows for k, rows in _CONTACT if k == key]
     if hit:
         return hit[0]

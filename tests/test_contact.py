@@ -34,8 +34,12 @@ from jshadow.geometry import Twist, normalize_to_unit_sphere
 from jshadow.runner import Renderer
 from jshadow.scene import (
     CONTACT_GRID,
+    CONTACT_GRID_DIM,
     CONTACT_NO_DERIVATIVE,
     CONTACT_REACH,
+    CONTACT_SH_SHARE,
+    clear_pose_caches,
+    contact_grid,
     contact_ray_tests,
     contact_rows_at_time,
     environment_visible_fraction,
@@ -216,6 +220,40 @@ def test_environment_light_fraction_matches_the_exact_sphere_test():
     exact, _ = environment_visible_fraction(ball, (None,), lighting.env_lights, pts, nrm)
     m = np.asarray(near[:, 0])
     np.testing.assert_allclose(np.asarray(env)[m], np.asarray(exact)[m], atol=0.03)
+
+
+def test_grid_is_coarser_where_the_n_band_path_carries_little_light(monkeypatch):
+    """A sun map split into lamps leaves its dim sky on the n-band path: the rows are cast on the
+    coarser grid there, close to the whole grid's, and on the whole grid where the sky is bright."""
+    import jshadow.scene as scene_mod
+
+    split = dataclasses.replace(RAYS, light_visibility="images", environment_lights=8)
+    assert contact_grid(_scene()) == tuple(CONTACT_GRID)  # a constant sky: no lamps
+    for sky, sun, dim in ((0.1, 400.0, True), (0.3, 40.0, False)):
+        scene = _scene(
+            split, environment=Environment(f32(1.0, 1.0, 1.0), jnp.asarray(_sun_map(sky=sky, sun=sun)), "hdr")
+        )
+        lighting = scene_lighting(scene)
+        rest, bright = float(np.mean(lighting.env_sh[0])), float(np.mean(lighting.env_bright_sh[0]))
+        assert (rest / (rest + bright) <= CONTACT_SH_SHARE) == dim  # measured 0.177 and 0.867
+        assert contact_grid(scene, lighting) == tuple(CONTACT_GRID_DIM if dim else CONTACT_GRID)
+        clear_pose_caches()
+        near, rows, _, _ = contact_rows_at_time(scene, 0.0, lighting)
+        got = np.asarray(render(scene, 0.0).irradiance)
+        monkeypatch.setattr(scene_mod, "CONTACT_GRID_DIM", CONTACT_GRID)  # the whole grid everywhere
+        clear_pose_caches()
+        _, whole, _, _ = contact_rows_at_time(scene, 0.0, lighting)
+        want = np.asarray(render(scene, 0.0).irradiance)
+        monkeypatch.undo()
+        m = np.asarray(near[:, 0])
+        assert m.sum() >= 3
+        diff = np.abs(np.asarray(rows) - np.asarray(whole))[m]
+        if dim:  # another grid (coefficients up to about 2.8; measured 0.080 at most), a small change
+            assert 1e-3 < diff.max() < 0.15
+            assert np.abs(got - want).max() < 0.005 * want.mean()  # measured 0.16 % of the mean
+        else:
+            assert diff.max() == 0.0 and np.array_equal(got, want)
+    clear_pose_caches()
 
 
 def test_far_mesh_gives_none_and_keeps_the_readout():

@@ -51,6 +51,24 @@ def test_coverage_is_the_orthographic_rays_and_the_groups_change_nothing(mesh, r
         assert 0.05 < hit.mean() < 0.8
 
 
+@pytest.mark.parametrize("entry_only", [False, True])
+def test_depths_of_the_size_groups_in_one_pass_are_one_window_for_all(mesh, rng, entry_only):
+    """The groups of window sizes, scattered into one image per direction in a single pass (each
+    direction rasterising its own entry faces, with entry_only), give the depths that one window
+    as large as the image gives every face: the same tests (bit for bit with XLA's default
+    flags; the compiler may contract the depth's products differently for another window size)."""
+    v, f = mesh
+    d = jnp.asarray(random_dirs(rng, (5,)), jnp.float32)
+    res = 48
+    assert len(stamp_groups(v, f, res)) >= 2
+    img = np.asarray(lamp_images(v, f, d, res, entry_only=entry_only).front)
+    whole = np.asarray(lamp_images(v, f, d, res, stamp=res + 1, entry_only=entry_only).front)
+    covered = np.isfinite(img)
+    np.testing.assert_array_equal(covered, np.isfinite(whole))
+    np.testing.assert_allclose(img[covered], whole[covered], rtol=0, atol=1e-6)
+    assert 0.05 < float(covered.mean()) < 0.8
+
+
 def test_lookups_from_outside_match_exact_rays_but_at_the_silhouette(mesh, rng):
     """Points outside the bounding sphere: the lookup is the exact any-hit up to rays passing within
     a pixel of the silhouette; a slice of the lamps gives those lamps' columns."""

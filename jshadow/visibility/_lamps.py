@@ -22,18 +22,24 @@ Coverage is the union of the projected triangles, tested at pixel centres: for e
 triangle) the centres of a fixed ``stamp × stamp`` window from the corner of the triangle's
 bounding box are tested against its three edges (inclusive, so a centre on a shared edge is never
 missed), and the face's depth there is scattered into the image with a maximum, one window per
-face (XLA's CPU scatter takes a window about 7× faster than its pixels one by one). Each pixel thus
+face (XLA's CPU scatter takes a window about 7× faster than its pixels one by one), the faces of
+every window size into the same image in one pass over the directions. Each pixel thus
 holds the front-most depth of the faces imaged; with ``entry_only`` only the faces the line toward
 the lamp enters the mesh through (about half, each direction rasterising its own), which for a
 closed mesh cover the same pixels and give the depth a point on its own surface is tested against
 (:mod:`._own_maps`). Cost: K·F·stamp² tests (the bunny's 3798 faces at 128² pixels: windows of
 4–32 pixels per side, a power of two, 14 % of the faces in windows of 16 or more, grouped by size,
 each group's count padded to one of four sizes per octave so that a deforming mesh compiles few
-shapes): its 128 images take 80 ms of all faces and 76 ms of the entry faces (101 ms of the entry
+shapes): its 128 images took 80 ms of all faces and 76 ms of the entry faces (101 ms of the entry
 faces with windows of 4, 6, 8, 12, ... pixels in the same run; in another run 87 ms with those
 sizes against 97 ms with each window a pixel wider than needed; the same images); the spot cow's
 288 at 128², 130 ms of the entry faces (147 ms with sizes 4, 6, 8, 12, ... in the same run; 126
-against 174 ms in another for the narrower windows).
+against 174 ms in another for the narrower windows), each size group then a pass over the
+directions with an image of its own, their maximum taken after. In one pass (the same images,
+BENCHMARKS.md "Lamp images in one pass"): the bunny's 256 at 128² 109 against 152 ms of the entry
+faces, 122 against 170 ms of all; the spot cow's 288 at 160² 157 against 185 ms, 195 against
+224 ms. Two faces that share an edge tested in one window (fewer scatters, twice the tests per
+window) were no faster there.
 
 Limitations: receivers off the mesh (an occluder's own vertices need a margin and their own
 nearby faces, :mod:`._own_maps`; :func:`jshadow.scene.environment_visible_fraction` routes them
@@ -145,54 +151,69 @@ _WINDOW = jax.lax.ScatterDimensionNumbers(
 )
 
 
-@partial(jax.jit, static_argnames=("resolution", "stamp", "entry_only"))
-def _rasterise(vertices, faces, directions, orientation, order=None, *, resolution, stamp, entry_only):
+@partial(jax.jit, static_argnames=("resolution", "stamps", "entry_only"))
+def _rasterise(vertices, groups, directions, orientation, orders, *, resolution, stamps, entry_only):
+    """Images of the faces of ``groups``, a tuple of (G, 3) face arrays, each face tested in a
+    window of ``stamps[i]`` pixels from the corner of its bounding box (degenerate faces, covering
+    nothing, pad them), every group scattered into the same image in one pass over the directions
+    (against a pass and an image per group: the bunny's 256 entry-face images at 128² in 109
+    instead of 152 ms, BENCHMARKS.md "Lamp images in one pass"); ``orders``: per group None or (K, cap), the
+    faces each direction rasterises (its entry faces first)."""
     center, radius, d, e1, e2, px, py = _pixel_coords(vertices, directions, resolution)
     pz = ((vertices - center) @ d.T).T  # (K, V) depth toward each lamp
-    tri = vertices[faces]
-    normal = jnp.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # (F, 3), unnormalised
-    enters = (normal @ d.T).T * orientation < 0  # (K, F): a line toward the lamp enters the mesh there
-    offs = jnp.arange(stamp, dtype=jnp.int32)
-    size = resolution + stamp  # windows start in [0, R] (pixel coordinates lie in [−½, R − ½])
-
-    per_direction = (px, py, pz, enters)
-    if order is not None:  # (K, cap): the faces each direction rasterises (its entry faces first)
-        per_direction = (px, py, pz, jnp.take_along_axis(enters, order, axis=1), order)
+    size = resolution + max(stamps)  # windows start in [0, R] (pixel coordinates lie in [−½, R − ½])
+    per_group = []
+    for faces, order in zip(groups, orders, strict=True):
+        tri = vertices[faces]  # (G, 3, 3)
+        normal = jnp.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # (G, 3), unnormalised
+        enters = (normal @ d.T).T * orientation < 0  # (K, G): a line toward the lamp enters there
+        if order is None:
+            per_group.append((enters, None))
+        else:
+            per_group.append((jnp.take_along_axis(enters, order, axis=1), order))
 
     def one(args):
-        x, y, z, ent = args[:4]  # (V,) pixel coordinates and depths along this direction; (F,) entry
-        faces_k = faces if len(args) == 4 else faces[args[4]]
-        ax, ay, az = x[faces_k[:, 0]], y[faces_k[:, 0]], z[faces_k[:, 0]]
-        bx, by, bz = x[faces_k[:, 1]], y[faces_k[:, 1]], z[faces_k[:, 1]]
-        cx, cy, cz = x[faces_k[:, 2]], y[faces_k[:, 2]], z[faces_k[:, 2]]
-        area = (bx - ax) * (cy - ay) - (by - ay) * (cx - ax)
-        sgn = jnp.sign(area)
-        inv = jnp.where(area != 0, 1.0 / jnp.where(area != 0, area, 1.0), 0.0)
-        j0 = jnp.clip(jnp.ceil(jnp.minimum(jnp.minimum(ax, bx), cx)).astype(jnp.int32), 0, resolution)
-        i0 = jnp.clip(jnp.ceil(jnp.minimum(jnp.minimum(ay, by), cy)).astype(jnp.int32), 0, resolution)
-        qx = (j0[:, None, None] + offs[None, None, :]).astype(x.dtype)  # (F, 1, S)
-        qy = (i0[:, None, None] + offs[None, :, None]).astype(x.dtype)  # (F, S, 1)
-
-        def edge(x0, y0, x1, y1):  # twice the signed area of (p0, p1, q)
-            e = (x1 - x0)[:, None, None] * (qy - y0[:, None, None])
-            return e - (y1 - y0)[:, None, None] * (qx - x0[:, None, None])
-
-        wa, wb, wc = edge(bx, by, cx, cy), edge(cx, cy, ax, ay), edge(ax, ay, bx, by)
-        s = sgn[:, None, None]
-        inside = (s * wa >= 0) & (s * wb >= 0) & (s * wc >= 0)  # inclusive: shared edges never missed
-        keep = sgn != 0  # an edge-on triangle covers nothing
-        if entry_only:
-            keep = keep & ent
-        inside = inside & keep[:, None, None]
-        depth = wa * az[:, None, None] + wb * bz[:, None, None] + wc * cz[:, None, None]
-        depth = depth * inv[:, None, None]  # the face's plane at the pixel centre (barycentric)
-        vals = jnp.where(inside, depth, -jnp.inf)
+        x, y, z, rest = args  # (V,) pixel coordinates and depths along this direction
         img = jnp.full((size, size), -jnp.inf, x.dtype)
-        img = jax.lax.scatter_max(img, jnp.stack([i0, j0], -1), vals, _WINDOW, mode="promise_in_bounds")
+        for faces, stamp, (ent, order) in zip(groups, stamps, rest, strict=True):
+            faces_k = faces if order is None else faces[order]  # (G, 3)
+            img = _scatter_windows(img, x, y, z, faces_k, ent, stamp, resolution, entry_only)
         return img[:resolution, :resolution]
 
-    front = jax.lax.map(one, per_direction)
+    front = jax.lax.map(one, (px, py, pz, tuple(per_group)))
     return LampImages(front, d, e1, e2, center, radius, entry_only)
+
+
+def _scatter_windows(img, x, y, z, faces_k, ent, stamp, resolution, entry_only):
+    """``img`` with the ``stamp``-pixel windows of the faces ``faces_k`` (G, 3) scattered in (a
+    maximum of their depths at the pixel centres they cover); ``ent`` (G,) their entry bits."""
+    offs = jnp.arange(stamp, dtype=jnp.int32)
+    ax, ay, az = x[faces_k[:, 0]], y[faces_k[:, 0]], z[faces_k[:, 0]]
+    bx, by, bz = x[faces_k[:, 1]], y[faces_k[:, 1]], z[faces_k[:, 1]]
+    cx, cy, cz = x[faces_k[:, 2]], y[faces_k[:, 2]], z[faces_k[:, 2]]
+    area = (bx - ax) * (cy - ay) - (by - ay) * (cx - ax)
+    sgn = jnp.sign(area)
+    inv = jnp.where(area != 0, 1.0 / jnp.where(area != 0, area, 1.0), 0.0)
+    j0 = jnp.clip(jnp.ceil(jnp.minimum(jnp.minimum(ax, bx), cx)).astype(jnp.int32), 0, resolution)
+    i0 = jnp.clip(jnp.ceil(jnp.minimum(jnp.minimum(ay, by), cy)).astype(jnp.int32), 0, resolution)
+    qx = (j0[:, None, None] + offs[None, None, :]).astype(x.dtype)  # (G, 1, S)
+    qy = (i0[:, None, None] + offs[None, :, None]).astype(x.dtype)  # (G, S, 1)
+
+    def edge(x0, y0, x1, y1):  # twice the signed area of (p0, p1, q)
+        e = (x1 - x0)[:, None, None] * (qy - y0[:, None, None])
+        return e - (y1 - y0)[:, None, None] * (qx - x0[:, None, None])
+
+    wa, wb, wc = edge(bx, by, cx, cy), edge(cx, cy, ax, ay), edge(ax, ay, bx, by)
+    sg = sgn[:, None, None]
+    inside = (sg * wa >= 0) & (sg * wb >= 0) & (sg * wc >= 0)  # inclusive: shared edges never missed
+    keep = sgn != 0  # an edge-on triangle covers nothing
+    if entry_only:
+        keep = keep & ent
+    inside = inside & keep[:, None, None]
+    depth = wa * az[:, None, None] + wb * bz[:, None, None] + wc * cz[:, None, None]
+    depth = depth * inv[:, None, None]  # the face's plane at the pixel centre (barycentric)
+    vals = jnp.where(inside, depth, -jnp.inf)
+    return jax.lax.scatter_max(img, jnp.stack([i0, j0], -1), vals, _WINDOW, mode="promise_in_bounds")
 
 
 def lamp_images(
@@ -243,23 +264,32 @@ def lamp_images(
         t = vn[faces]
         normal = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
         enters = (normal @ dn.T) * np.sign(np.sum(t[:, 0] * np.cross(t[:, 1], t[:, 2])) or 1.0) < 0  # (F, K)
-    out = None
+    arrays, orders, stamps = [], [], []
     for idx, size in groups:
         # degenerate padding (covers nothing) to a few counts per octave: a deforming mesh's groups
         # change size from pose to pose, and each new shape would compile again
         f = np.zeros((_padded_count(idx.shape[0]), 3), faces.dtype)
         f[: idx.shape[0]] = faces[idx]
-        f = jnp.asarray(f)
         # with entry faces only, each direction rasterises its own (about half), padded likewise
         order = None
         if enters is not None:
+            held = enters[idx]  # (G, K)
             eighth = -(-f.shape[0] // 8)  # caps in eighths of the group: few shapes to compile
-            cap = min(-(-int(enters[idx].sum(0).max()) // eighth) * eighth, f.shape[0])
-            order = np.argsort(~enters[idx].T, axis=1, kind="stable")[:, :cap].astype(np.int32)
-        img = _rasterise(
-            v, f, d, orientation, order, resolution=resolution, stamp=size, entry_only=entry_only
-        )
-        out = img if out is None else eqx.tree_at(lambda x: x.front, out, jnp.maximum(out.front, img.front))
+            cap = min(-(-int(held.sum(0).max()) // eighth) * eighth, f.shape[0])
+            order = jnp.asarray(np.argsort(~held.T, axis=1, kind="stable")[:, :cap].astype(np.int32))
+        arrays.append(jnp.asarray(f))
+        orders.append(order)
+        stamps.append(int(size))
+    out = _rasterise(
+        v,
+        tuple(arrays),
+        d,
+        orientation,
+        tuple(orders),
+        resolution=resolution,
+        stamps=tuple(stamps),
+        entry_only=entry_only,
+    )
     return out
 
 
