@@ -133,14 +133,15 @@ class Method:
     (0.3) of its bounding radius from one of its vertices or of a face larger than half that, where
     the field's extrapolation inward from the shell fails (a mesh resting just above its floor).
     "field" (default) keeps the field's visibility and the images' lookups there; "rays" casts that
-    mesh's visibility SH from a 24 × 48 sphere grid's rays (only the half above the receiver's plane
-    where every mesh lies above it), and the sphere lights' and environment lights' visible
-    fractions by exact rays against every occluder (:func:`jshadow.scene.contact_rows_at_time`): the
-    untuned spot cow 0.05 above its floor under a sphere light and a sky 2.12 → 0.54 % relative RMSE
-    (max 27.7 → 4.2 %), the bunny 0.05 above its floor under the studio map 0.70 → 0.41 % (max
-    11.9 → 2.7 %), for 57–78 ms of rays there at a 32² plane, 0.6–1.1 ms per such receiver at 64²
-    (the bunny's 366 in 210 ms, the cow's 172 in 181 ms; BENCHMARKS.md "The default against the
-    paper", eighth and ninth runs).
+    mesh's visibility SH from a 24 × 48 sphere grid's rays (12 × 24 where a split map's rest carries
+    at most a quarter of its energy, :func:`jshadow.scene.contact_grid`; only the half above the
+    receiver's plane where every mesh lies above it), and the sphere lights' and environment lights'
+    visible fractions by exact rays against every occluder (:func:`jshadow.scene.contact_rows_at_time`):
+    the untuned spot cow 0.05 above its floor under a sphere light and a sky 2.12 → 0.54 % relative
+    RMSE (max 27.7 → 4.2 %), the bunny 0.05 above its floor under the studio map 0.70 → 0.41 % (max
+    11.9 → 2.7 %), for 36–64 ms of rays there at a 32² plane (the bunny's 91 such receivers, the
+    cow's 39), 0.4–0.9 ms per such receiver at 64² (the bunny's 366 in 143 ms on the coarser grid,
+    the cow's 172 in 159 ms; BENCHMARKS.md "The default against the paper", eighth to tenth runs).
     :class:`jshadow.Renderer` makes them once for shapes that do not change, every frame for a
     deforming mesh. Binary visibility: differentiating them raises.
 

@@ -39,7 +39,7 @@ directions with an image of its own, their maximum taken after. In one pass (the
 BENCHMARKS.md "Lamp images in one pass"): the bunny's 256 at 128² 109 against 152 ms of the entry
 faces, 122 against 170 ms of all; the spot cow's 288 at 160² 157 against 185 ms, 195 against
 224 ms. Two faces that share an edge tested in one window (fewer scatters, twice the tests per
-window) were no faster there.
+window) were faster on some meshes and slower on others, and are not used.
 
 Limitations: receivers off the mesh (an occluder's own vertices need a margin and their own
 nearby faces, :mod:`._own_maps`; :func:`jshadow.scene.environment_visible_fraction` routes them
