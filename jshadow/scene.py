@@ -72,6 +72,7 @@ from .visibility import (
     BSV,
     LampImages,
     OcclusionImages,
+    _own_exact,
     bsv_and_coverage_edgescan_diff,
     bsv_mesh,
     bsv_mesh_diff,
@@ -645,6 +646,21 @@ def _ring_faces(faces: np.ndarray, n_vertices: int) -> np.ndarray:
 _OWN: list = []  # [(key, own visibility)] of concrete poses, most recent last (at most 8)
 
 
+def _maps_constants() -> tuple:
+    """The module constants the "maps" casts read, as they are now: part of the own-vertex caches'
+    keys, so that a pose cast before one of them changed is cast anew."""
+    return (
+        MAPS_MARGIN,
+        MAPS_TRANSFER_MARGIN,
+        MAPS_RINGS,
+        MAPS_LAMP_RESOLUTION,
+        MAPS_EXACT_AMBIGUOUS,
+        _own_exact.REACH,
+        _own_exact.AHEAD,
+        _own_exact.TILE,
+    )
+
+
 def occluder_own_visibility(occ: MeshOccluder, t, scene: Scene, cache: bool = True) -> Float[Array, "V n2"]:
     """(V, n²) shadowed diffuse transfer of a mesh occluder at its own vertices at time t, by rays
     (:func:`jshadow.visibility.vertex_visibility_sh` with ``transfer=True``, the scene's
@@ -673,7 +689,14 @@ def occluder_own_visibility(occ: MeshOccluder, t, scene: Scene, cache: bool = Tr
     concrete = v_np is not None and f_np is not None and lift is not None
     if concrete and (cache or m.self_visibility == "maps"):  # "maps" needs a concrete pose
         key = (v_np.shape, str(v_np.dtype), v_np.tobytes(), f_np.shape, f_np.tobytes(), m.sh_bands, grid)
-        key = (*key, lift, m.self_visibility, tuple(m.self_maps_grid), m.self_maps_resolution)
+        key = (
+            *key,
+            lift,
+            m.self_visibility,
+            tuple(m.self_maps_grid),
+            m.self_maps_resolution,
+            *_maps_constants(),
+        )
         hit = [own for k, own in _OWN if k == key] if cache else []
         if not hit:
             with jax.ensure_compile_time_eval():
@@ -734,7 +757,7 @@ def occluder_own_light_visibility(
     concrete = v_np is not None and f_np is not None and d_np is not None and lift is not None
     if concrete and (cache or m.self_visibility == "maps"):  # "maps" needs a concrete pose
         key = (v_np.shape, str(v_np.dtype), v_np.tobytes(), f_np.tobytes(), d_np.tobytes(), lift)
-        key = (*key, m.self_visibility, m.lamp_images, MAPS_EXACT_AMBIGUOUS)
+        key = (*key, m.self_visibility, m.lamp_images, *_maps_constants())
         hit = [vis for k, vis in _OWN_LIGHTS if k == key] if cache else []
         if not hit:
             with jax.ensure_compile_time_eval():

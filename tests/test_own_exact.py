@@ -154,3 +154,41 @@ def test_the_scene_settles_its_own_vertices_lamps(setup):
     ]
     np.testing.assert_array_equal(got, want[0])
     assert np.any(want[0] != want[1])
+
+
+def test_the_scene_casts_anew_when_a_constant_of_the_casts_changes(setup, monkeypatch):
+    """The own-vertex caches' keys hold the module constants the "maps" casts read (the margins,
+    rings, the settling's reach and ahead): a pose cast before one of them changed is cast anew."""
+    import dataclasses
+
+    from test_own_maps import MAPS
+    from test_self_visibility import _scene
+
+    import jshadow.scene as scene_mod
+    from jshadow.entities import MeshOccluder
+    from jshadow.visibility import _own_exact
+
+    v, f, d, _, _, _ = setup
+    occ = MeshOccluder(v - jnp.mean(v, 0), f, jnp.asarray([0.0, 1.0, 0.0]), jnp.float32(0.8))
+    scene = _scene(dataclasses.replace(MAPS, lamp_images=64), occ)
+    calls = []
+    real = scene_mod.vertex_lamp_visibility
+
+    def counted(*args, **kw):
+        calls.append(1)
+        return real(*args, **kw)
+
+    monkeypatch.setattr(scene_mod, "vertex_lamp_visibility", counted)
+    scene_mod.clear_pose_caches()
+    first = np.asarray(scene_mod.occluder_own_light_visibility(occ, 0.0, scene, d))
+    np.testing.assert_array_equal(
+        np.asarray(scene_mod.occluder_own_light_visibility(occ, 0.0, scene, d)), first
+    )
+    assert len(calls) == 1  # kept
+    monkeypatch.setattr(_own_exact, "REACH", 0)
+    scene_mod.occluder_own_light_visibility(occ, 0.0, scene, d)
+    assert len(calls) == 2  # another reach: cast anew
+    monkeypatch.setattr(scene_mod, "MAPS_RINGS", 3)
+    scene_mod.occluder_own_light_visibility(occ, 0.0, scene, d)
+    assert len(calls) == 3
+    scene_mod.clear_pose_caches()
