@@ -164,13 +164,13 @@ def _rasterise(vertices, groups, directions, orientation, orders, *, resolution,
     size = resolution + max(stamps)  # windows start in [0, R] (pixel coordinates lie in [−½, R − ½])
     per_group = []
     for faces, order in zip(groups, orders, strict=True):
+        if not entry_only:  # every face imaged: no entry bits to carry through the pass
+            per_group.append((None, order))
+            continue
         tri = vertices[faces]  # (G, 3, 3)
         normal = jnp.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # (G, 3), unnormalised
         enters = (normal @ d.T).T * orientation < 0  # (K, G): a line toward the lamp enters there
-        if order is None:
-            per_group.append((enters, None))
-        else:
-            per_group.append((jnp.take_along_axis(enters, order, axis=1), order))
+        per_group.append((enters if order is None else jnp.take_along_axis(enters, order, axis=1), order))
 
     def one(args):
         x, y, z, rest = args  # (V,) pixel coordinates and depths along this direction
@@ -280,7 +280,7 @@ def lamp_images(
         arrays.append(jnp.asarray(f))
         orders.append(order)
         stamps.append(int(size))
-    out = _rasterise(
+    return _rasterise(
         v,
         tuple(arrays),
         d,
@@ -290,7 +290,6 @@ def lamp_images(
         stamps=tuple(stamps),
         entry_only=entry_only,
     )
-    return out
 
 
 def image_coords(
