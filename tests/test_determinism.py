@@ -182,8 +182,9 @@ def test_cli_outputs_identical_across_processes(config_file, tmp_path):
     )
     runs = [tmp_path / "run0", tmp_path / "run1"]
     # One after the other, sharing this run's compilation cache: the second process loads what the
-    # first compiled (a cache hit is keyed by the program, so a program that differed between the
-    # processes would still be compiled anew, and its outputs compared below).
+    # first compiled and the cache holds (a hit is keyed by the program, so a program that differed
+    # between the processes would still be compiled anew, and its outputs compared below; programs
+    # with a host callback, as every equinox runtime check is, are not cached and compiled by both).
     for d in runs:
         p = subprocess.run(
             [sys.executable, "-c", code, str(d), str(config_file)],

@@ -58,11 +58,19 @@ def _ico_mesh(subdiv):
     return np.asarray(m.vertices, np.float64), np.asarray(m.faces)
 
 
-def _coverage_jvp(v, f, dv):
-    def run(x, dx):
-        return jax.jvp(lambda w: bsv_and_coverage_edgescan_diff(w, f, 4, GRID, DIRS, SHELL), (x,), (dx,))
+_JVPS: dict = {}  # one compiled jvp per mesh topology: a new closure each call compiled it anew
 
-    return jax.jit(run)(jnp.asarray(v), jnp.asarray(dv))
+
+def _coverage_jvp(v, f, dv):
+    f = np.asarray(f)
+    key = (f.shape, f.tobytes(), jnp.asarray(v).dtype)
+    if key not in _JVPS:
+
+        def run(x, dx):
+            return jax.jvp(lambda w: bsv_and_coverage_edgescan_diff(w, f, 4, GRID, DIRS, SHELL), (x,), (dx,))
+
+        _JVPS[key] = jax.jit(run)
+    return _JVPS[key](jnp.asarray(v), jnp.asarray(dv))
 
 
 def _cos(a, b):
