@@ -56,6 +56,7 @@ from jshadow.geometry import vertex_normals  # noqa: E402
 from jshadow.lights import environment_sh  # noqa: E402
 from jshadow.sh import clamped_cosine, sh_basis, sphere_grid  # noqa: E402
 from jshadow.visibility import (  # noqa: E402
+    _own_exact,  # noqa: E402
     lamp_images,
     ray_fan_any_hit,
     ring_faces,
@@ -63,7 +64,6 @@ from jshadow.visibility import (  # noqa: E402
     vertex_transfer_maps,
     vertex_visibility_sh,
 )
-from jshadow.visibility._lamps import _front_at, image_coords  # noqa: E402
 
 OUT = pathlib.Path(__file__).resolve().parent / "results" / "max_errors.json"
 SCENES = ["bunny_studio", "bunny_animated_last", "spot_self_sky_bend_last", "bunny_self_sky_bend_last"]
@@ -139,38 +139,48 @@ def _cells(nt: int, nph: int, sub: int) -> np.ndarray:
     return out.reshape(nt * nph, sub * sub, 3)
 
 
+def _sky_case(name: str):
+    """One case's pose and what its own vertices' transfer is measured with: the scene, vertices,
+    faces, lift, the sky's n²-band SH (n², 3), the vertex normals, the lifted origins, the clamped
+    cosine's exact SH and the fine reference irradiance (exact rays over a 32 × 128 hemisphere)."""
+    scene, v, f, lift = _pose(name)
+    light = np.asarray(environment_sh(scene.environment, BANDS))  # (n², 3)
+    nrm = np.asarray(vertex_normals(jnp.asarray(v), jnp.asarray(f)))
+    origins = jnp.asarray(v + lift * nrm)
+    exact_cos = np.asarray(clamped_cosine(jnp.asarray(nrm), BANDS))
+    fine_e = np.asarray(vertex_visibility_sh(v, f, BANDS, (32, 128), True, lift, True)) @ light
+    return scene, v, f, lift, light, nrm, origins, exact_cos, fine_e
+
+
+def _transfer_errors(coeffs, light, fine_e) -> dict:
+    """Relative RMSE and max (% of the reference's mean) of the irradiance from transfer SH
+    ``coeffs``, and the vertices over 5 %."""
+    d = (coeffs @ light - fine_e) / float(fine_e.mean())
+    a = np.abs(d).max(1)
+    return {
+        "rel_rmse_pct": 100 * float(np.sqrt(np.mean(d**2))),
+        "max_rel_err_pct": 100 * float(a.max()),
+        "vertices_over_5pct": int((a > 0.05).sum()),
+    }
+
+
 def transfer(name: str = "spot_self_sky_bend_last") -> dict:
     """The own vertices' transfer under the scene's sky, quadrature by quadrature (see the module
     docstring); relative RMSE and max of the irradiance against the fine hemisphere grid."""
-    scene, v, f, lift = _pose(name)
-    light = np.asarray(environment_sh(scene.environment, BANDS))  # (n², 3)
+    t0 = time.perf_counter()
+    scene, v, f, lift, light, nrm, origins, exact_cos, fine_e = _sky_case(name)
     vj, fj = jnp.asarray(v), jnp.asarray(f)
-    nrm = np.asarray(vertex_normals(vj, fj))
-    origins = jnp.asarray(v + lift * nrm)
-    exact_cos = np.asarray(clamped_cosine(jnp.asarray(nrm), BANDS))
 
     def visible(dirs):  # (V, D) or shared (D, 3) directions
         hit = ray_fan_any_hit(origins, jnp.asarray(dirs, jnp.float32), vj, fj, t_min=lift)
         return 1.0 - np.asarray(hit, np.float64)
 
-    t0 = time.perf_counter()
-    fine = np.asarray(vertex_visibility_sh(v, f, BANDS, (32, 128), True, lift, True))
-    fine_e = fine @ light
-    mean = float(fine_e.mean())
     out = {"vertices": int(v.shape[0]), "fine_s": time.perf_counter() - t0, "quadratures": {}}
 
     def record(label, coeffs, directions):
-        d = (coeffs @ light - fine_e) / mean
-        a = np.abs(d).max(1)
-        out["quadratures"][label] = {
-            "directions_per_vertex": directions,
-            "rel_rmse_pct": 100 * float(np.sqrt(np.mean(d**2))),
-            "max_rel_err_pct": 100 * float(a.max()),
-            "vertices_over_5pct": int((a > 0.05).sum()),
-        }
-        print(
-            f"  {label:44s} rmse {out['quadratures'][label]['rel_rmse_pct']:.2f} %  max {100 * a.max():.2f} %"
-        )
+        row = {"directions_per_vertex": directions, **_transfer_errors(coeffs, light, fine_e)}
+        out["quadratures"][label] = row
+        print(f"  {label:44s} rmse {row['rel_rmse_pct']:.2f} %  max {row['max_rel_err_pct']:.2f} %")
 
     grid = tuple(scene.method.self_maps_grid)
     res = scene.method.self_maps_resolution
@@ -224,35 +234,24 @@ def transfer(name: str = "spot_self_sky_bend_last") -> dict:
 
 def rings(names=("bunny_self_sky_bend_last", "spot_self_sky_bend_last"), wide: int = 6) -> dict:
     """The own vertices' transfer with the ambiguous pairs' near faces widened to ``wide`` rings
-    (see the module docstring); relative RMSE and max against the fine hemisphere grid."""
+    (see the module docstring); relative RMSE and max against the fine hemisphere grid. The pairs
+    are :func:`jshadow.visibility.settle_ambiguous`'s with ``reach`` 0 (its four centres)."""
     out = {}
     for name in names:
-        scene, v, f, lift = _pose(name)
-        light = np.asarray(environment_sh(scene.environment, BANDS))
+        scene, v, f, lift, light, nrm, origins, exact_cos, fine_e = _sky_case(name)
         vj, fj = jnp.asarray(v), jnp.asarray(f)
-        nrm = vertex_normals(vj, fj)
-        origins = vj + lift * nrm
-        fine_e = np.asarray(vertex_visibility_sh(v, f, BANDS, (32, 128), True, lift, True)) @ light
-        mean = float(fine_e.mean())
         grid, res = tuple(scene.method.self_maps_grid), scene.method.self_maps_resolution
-        margin = scene_mod.MAPS_TRANSFER_MARGIN
+        margin, base = scene_mod.MAPS_TRANSFER_MARGIN, scene_mod.MAPS_RINGS
         dirs, w = sphere_grid(*grid, dtype=jnp.float32)
         images = lamp_images(vj, f, dirs, res, entry_only=True)
         vis = {
             r: np.asarray(vertex_lamp_visibility(images, vj, fj, ring_faces(f, v.shape[0], r), lift, margin))
-            for r in (scene_mod.MAPS_RINGS, wide)
+            for r in (base, wide)
         }
-        u, wq, z, pixel = image_coords(images, origins)
-        thr = z + margin * pixel
-        j0, i0 = jnp.floor(u).astype(jnp.int32), jnp.floor(wq).astype(jnp.int32)
-        far = [_front_at(images, i0 + a, j0 + b) > thr for a in (0, 1) for b in (0, 1)]
-        anyf = far[0] | far[1] | far[2] | far[3]
-        allf = far[0] & far[1] & far[2] & far[3]
-        amb = np.asarray((anyf != allf) & (nrm @ dirs.T > 0))
-        cos = np.maximum(np.asarray(nrm) @ np.asarray(dirs).T, 0.0)
-        exact_cos = np.asarray(clamped_cosine(nrm, BANDS))
+        args = (images, vj, fj, origins, jnp.asarray(nrm), jnp.float32(margin))
+        amb = np.asarray(_own_exact._ambiguous(*args, _own_exact.TILE, 0, jnp.float32(_own_exact.AHEAD))[1])
+        occluded = np.maximum(nrm @ np.asarray(dirs).T, 0.0) * np.asarray(w)  # cos·w per pair
         y = np.asarray(sh_basis(dirs, BANDS))
-        base = scene_mod.MAPS_RINGS
         cases = (
             (f"images {grid[0]} x {grid[1]} at {res}², {base} rings (the default)", vis[base]),
             (f"every pair against {wide} rings", vis[wide]),
@@ -260,19 +259,17 @@ def rings(names=("bunny_self_sky_bend_last", "spot_self_sky_bend_last"), wide: i
         )
         rows = {}
         for label, vv in cases:
-            d = ((exact_cos - ((1.0 - vv) * cos * np.asarray(w)) @ y) @ light - fine_e) / mean
-            a = np.abs(d).max(1)
-            rows[label] = {
-                "rel_rmse_pct": 100 * float(np.sqrt(np.mean(d**2))),
-                "max_rel_err_pct": 100 * float(a.max()),
-                "vertices_over_5pct": int((a > 0.05).sum()),
-            }
-            print(f"  {name} {label:52s} rmse {rows[label]['rel_rmse_pct']:.2f} %  max {100 * a.max():.2f} %")
+            rows[label] = _transfer_errors(exact_cos - ((1.0 - vv) * occluded) @ y, light, fine_e)
+            print(
+                f"  {name} {label:52s} rmse {rows[label]['rel_rmse_pct']:.2f} %"
+                f"  max {rows[label]['max_rel_err_pct']:.2f} %"
+            )
+        changed = vis[wide] != vis[base]
         out[name] = {
             "vertices": int(v.shape[0]),
             "ambiguous_pairs": int(amb.sum()),
-            "changed_pairs": int((vis[wide] != vis[scene_mod.MAPS_RINGS]).sum()),
-            "changed_ambiguous_pairs": int(((vis[wide] != vis[scene_mod.MAPS_RINGS]) & amb).sum()),
+            "changed_pairs": int(changed.sum()),
+            "changed_ambiguous_pairs": int((changed & amb).sum()),
             "quadratures": rows,
         }
     return out

@@ -42,7 +42,7 @@ def _compilation_cache() -> None:
     compiles to, so most of jshadow's programs are compiled anew in each process that needs them
     (2026-12-07, a full run: of 1545 s of XLA compilation, 158 s went to programs a process had
     compiled before, 21 s of it one stress program compiled again after its module's caches were
-    dropped; tests that make a new closure per call keep one ``jax.jit`` per input instead). The
+    dropped; a test helper that made a new closure per call now keeps one ``jax.jit`` per mesh). The
     folder is made by the first process that imports this file — xdist's controller, before it
     starts the workers, which inherit its path through ``JSHADOW_TEST_XLA_CACHE`` — and removed
     by that process at the end, so every run starts empty and no stale entry outlives it. A size
