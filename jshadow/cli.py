@@ -182,6 +182,7 @@ def cmd_render(args) -> int:
         "directions": list(scene.method.directions),
         "light_cap": list(scene.method.light_cap),
         "lamp_images": scene.method.lamp_images,
+        "lamp_penumbrae": scene.method.lamp_penumbrae,
         "readout_frames": renderer.readout_frames,
         "wall_s_including_pictures": wall,
         "per_frame": frames,

@@ -52,6 +52,7 @@ SELF_VISIBILITIES = ("field", "rays", "light_rays", "maps")
 CONTACT_VISIBILITIES = ("field", "rays")
 LIGHT_VISIBILITIES = ("sh", "images")
 LIGHT_IMAGES = ("samples", "coverage")
+LAMP_PENUMBRAE = ("none", "region")
 BSV_IMAGES = ("samples", "coverage")
 
 
@@ -202,6 +203,12 @@ class Method:
     closed mesh's entry faces 74–81 ms), made once for a mesh that keeps its shape and every frame
     for one that deforms; an occluder's own vertices keep their rays or "maps" (which read the
     same images' depth), else the n-band fallback. 0 (default): the shell's.
+
+    ``lamp_penumbrae`` "region" (with lamp images) widens each receiver's lookup of a lamp to the
+    penumbra of the map region the lamp stands for (the region's angular extent times the distance
+    to the blocker, averaged over taps in the image: :func:`jshadow.visibility.lamp_visibility`
+    with ``spread``) instead of one bilinear lookup, whose edge is a pixel wide at any distance;
+    about 10× the lookups' cost. "none" (default): the bilinear lookup.
     """
 
     sh_bands: int = 4  # n: n² coefficients
@@ -235,6 +242,7 @@ class Method:
     self_maps_grid: tuple[int, int] = (8, 16)  # "maps": the transfer's θ × φ sphere grid
     self_maps_resolution: int = 64  # "maps": pixels per side of the transfer's depth images
     contact_visibility: str = "field"  # "field" | "rays": at fixed receivers next to a mesh (above)
+    lamp_penumbrae: str = "none"  # "none" | "region": lamp lookups widened to their regions' penumbrae
 
     @classmethod
     def paper(cls, **options) -> Method:
@@ -323,6 +331,10 @@ class Method:
         r = self.self_maps_resolution
         if int(r) != r or r < 8:
             raise ValueError(f"method.self_maps_resolution must be an integer >= 8, got {r}")
+        if self.lamp_penumbrae not in LAMP_PENUMBRAE:
+            raise ValueError(
+                f"method.lamp_penumbrae must be one of {LAMP_PENUMBRAE}, got {self.lamp_penumbrae!r}"
+            )
         if self.contact_visibility not in CONTACT_VISIBILITIES:
             raise ValueError(
                 f"method.contact_visibility must be one of {CONTACT_VISIBILITIES}, "

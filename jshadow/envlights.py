@@ -18,7 +18,8 @@ the bright part's exact unoccluded irradiance (tabulated, :func:`jshadow.lights.
 times the energy- and cosine-weighted visible fraction of the K directions. The split is exact
 (rest + bright part = the map, pixel for pixel); what the K directions approximate is only the
 *shape* of each region's shadow (a region's penumbra becomes one hard edge), so K should grow with
-the bright regions' size.
+the bright regions' size, or the lookups widen each edge to its region's penumbra from the
+regions' extents (``EnvironmentLights.spread``, ``method.lamp_penumbrae = "region"``).
 
 Limitations: lat-long ("hdr") environments only; the split is decided once from the concrete
 image (thresholds and regions are not differentiated: a traced image raises), while the lights'
@@ -55,12 +56,19 @@ class EnvironmentLights(eqx.Module):
             (:func:`jshadow.visibility.image_fan_visibility`).
         unoccluded: the bright part's exact unoccluded irradiance over normals.
         fan: lights per fan (static), K = G·fan.
+        spread: (K, 3, 3) each region's angular second moment about its light, in its tangent
+            plane (radians², energy-weighted over its pixels, each pixel's own width included:
+            ``Σ w (δ δᵀ + Δθ²/12 e_θ e_θᵀ + (Δφ sin θ)²/12 e_φ e_φᵀ) / Σ w`` with δ the pixel's
+            direction less the light's, projected off it). ``eᵀ spread e`` is the variance along a
+            unit tangent e: what the lamp lookups widen a shadow's edge by
+            (:func:`jshadow.visibility.lamp_visibility`). Held fixed, like the directions.
     """
 
     directions: Float[Array, "K 3"]
     energy: Float[Array, "K 3"]
     axes: Float[Array, "G 3"]
     unoccluded: IrradianceMap
+    spread: Float[Array, "K 3 3"]
     fan: int = eqx.field(static=True)
 
 
@@ -122,6 +130,38 @@ def _cut(w: np.ndarray, r0: int, r1: int, c0: int, c1: int):
     return [(r0, r1, c0, c0 + s), (r0, r1, c0 + s, c1)]
 
 
+def _region_spread(dirs, weight, labels, directions, energy) -> np.ndarray:
+    """(K, 3, 3) angular second moment of each region about its light (``EnvironmentLights.spread``).
+
+    ``dirs`` (H, W, 3) pixel-centre directions, ``weight`` (H, W) energy per pixel, ``labels``
+    (H·W,) region of each pixel, ``directions`` (K, 3) the lights, ``energy`` (K,) the regions'
+    weights. A region without energy gets 0 (its light carries none). NumPy, float64."""
+    h, wd = weight.shape
+    k = directions.shape[0]
+    theta = np.pi * (np.arange(h) + 0.5) / h
+    phi = 2.0 * np.pi * (np.arange(wd) + 0.5) / wd
+    ct, st = np.cos(theta)[:, None], np.sin(theta)[:, None]
+    cp, sp = np.cos(phi)[None, :], np.sin(phi)[None, :]
+    e_t = np.stack(np.broadcast_arrays(ct * cp, -st + 0 * cp, -ct * sp), -1).reshape(-1, 3)
+    e_p = np.stack(np.broadcast_arrays(-sp + 0 * st, 0 * st * cp, -cp + 0 * st), -1).reshape(-1, 3)
+    var_t = np.full(h * wd, (np.pi / h) ** 2 / 12.0)
+    var_p = np.broadcast_to((2.0 * np.pi / wd * st) ** 2 / 12.0, (h, wd)).reshape(-1)
+    w = weight.reshape(-1)
+    on = w > 0
+    d, lab, w = dirs.reshape(-1, 3)[on], labels[on], w[on]
+    light = directions[lab]
+    delta = d - light
+    delta -= np.sum(delta * light, -1, keepdims=True) * light
+    second = (
+        delta[:, :, None] * delta[:, None, :]
+        + var_t[on, None, None] * (e_t[on, :, None] * e_t[on, None, :])
+        + var_p[on, None, None] * (e_p[on, :, None] * e_p[on, None, :])
+    )
+    out = np.zeros((k, 3, 3))
+    np.add.at(out, lab, second * w[:, None, None])
+    return out / np.maximum(energy, 1e-300)[:, None, None]
+
+
 def split_environment(
     env: Environment, count: int, threshold: float = Method.environment_threshold
 ) -> tuple[Environment, EnvironmentLights]:
@@ -170,6 +210,7 @@ def split_environment(
     for j in np.nonzero(energy_l <= 0)[0]:
         sums[j] = dirs.reshape(-1, 3)[flat == j].sum(0) if np.any(flat == j) else (0.0, 1.0, 0.0)
     directions = sums / np.maximum(np.linalg.norm(sums, axis=-1, keepdims=True), 1e-300)
+    spread = _region_spread(dirs, wgt.reshape(h, wd), flat, directions, energy_l)
     fan_sums = (directions * energy_l[:, None]).reshape(k // fan, fan, 3).sum(1)
     fan_sums = np.where(
         np.linalg.norm(fan_sums, axis=-1, keepdims=True) > 0,
@@ -191,6 +232,7 @@ def split_environment(
         energy=energy.astype(dtype),
         axes=jnp.asarray(axes, dtype),
         unoccluded=environment_irradiance_map(bright),
+        spread=jnp.asarray(spread, dtype),
         fan=fan,
     )
     return rest, lights

@@ -1225,6 +1225,8 @@ def environment_visible_fraction(
     geometry = (points, normals, _sphere_blockers(scene))
     dirs = jax.lax.stop_gradient(lights.directions)
     axes = jax.lax.stop_gradient(lights.axes)
+    # lamp_penumbrae = "region": the regions' extents widen the lamp lookups
+    spread = jax.lax.stop_gradient(lights.spread) if scene.method.lamp_penumbrae == "region" else None
 
     owners, own_vis = (own[1], own[2]) if own is not None and len(own) > 2 else (None, None)
 
@@ -1254,7 +1256,7 @@ def environment_visible_fraction(
                         vis = vis * (1.0 - hit.astype(pts.dtype))
                         continue
                     if img.lamps is not None:  # the lamps' own orthographic images
-                        v = lamp_visibility(img.lamps, pts, slice(lo, hi))
+                        v = lamp_visibility(img.lamps, pts, slice(lo, hi), spread)
                     else:
                         v = image_fan_visibility_components(img, pts, comps, axis)
                     if own_rows:  # own vertices: their exact rays instead of the lookup

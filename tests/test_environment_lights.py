@@ -393,3 +393,62 @@ def test_deforming_mesh_with_rays_under_jit_and_in_the_renderer():
     scale = float(np.abs(frames[1]).max())
     np.testing.assert_allclose(jitted, frames[1], atol=1e-3 * scale)
     assert np.abs(frames[2] - frames[0]).max() > 1e-3 * scale  # the twist changes the shading
+
+
+def test_region_spread_is_the_regions_second_moment_by_quadrature(rng):
+    """EnvironmentLights.spread against the second moment of each region's directions about its
+    light, integrated over 12 × 12 sub-pixels (uniform in θ and φ, weighted by solid angle)."""
+    h, w = 16, 32
+    img = rng.uniform(0.0, 1.0, (h, w, 3)).astype(np.float32)
+    img[3:6, 7:11] += 40.0  # a lamp a few pixels wide, so that some regions are single pixels
+    env = Environment(f32(1.0, 1.0, 1.0), jnp.asarray(img), "hdr")
+    _, lights = split_environment(env, 16, threshold=1.0)
+    spread = np.asarray(lights.spread, np.float64)
+    dirs_k = np.asarray(lights.directions, np.float64)
+    # the regions and weights split_environment used (median cut of the luminance excess)
+    edges = np.cos(np.pi * np.arange(h + 1) / h)
+    omega = (edges[:-1] - edges[1:]) * 2 * np.pi / w
+    lum = img.astype(np.float64).mean(-1)
+    tau = 1.0 * float((lum * omega[:, None]).sum() / (4 * np.pi))
+    weight = np.maximum(lum - tau, 0.0) * omega[:, None]
+    labels = median_cut(weight, 16)
+    s = 12
+    sub = (np.arange(s) + 0.5) / s
+    want = np.zeros((16, 3, 3))
+    total = np.zeros(16)
+    for i in range(h):
+        theta = np.pi * (i + sub) / h
+        for j in range(w):
+            if weight[i, j] <= 0:
+                continue
+            phi = 2 * np.pi * (j + sub) / w
+            t, p = np.meshgrid(theta, phi, indexing="ij")
+            d = np.stack([np.sin(t) * np.cos(p), np.cos(t), -np.sin(t) * np.sin(p)], -1).reshape(-1, 3)
+            a = np.sin(t).reshape(-1)  # solid angle per sub-pixel ∝ sin θ
+            k = labels[i, j]
+            delta = d - dirs_k[k]
+            delta -= (delta @ dirs_k[k])[:, None] * dirs_k[k]
+            m = (a[:, None, None] * delta[:, :, None] * delta[:, None, :]).sum(0) / a.sum()
+            want[k] += weight[i, j] * m
+            total[k] += weight[i, j]
+    want /= np.maximum(total, 1e-300)[:, None, None]
+    full = total > 0
+    # single pixels split into themselves and an empty region, which carries nothing
+    assert 0 < np.count_nonzero(~full) < 16 and np.all(spread[~full] == 0)
+    single = np.bincount(labels[weight > 0], minlength=16) == 1
+    assert np.any(single & full), "the lamp's pixels should be regions of their own"
+    spread, want = spread[full], want[full]
+    dirs_k = dirs_k[full]
+    # traces (the mean squared angle) within 3 %, and every entry within 3 % of the largest
+    np.testing.assert_allclose(
+        np.trace(spread, axis1=1, axis2=2), np.trace(want, axis1=1, axis2=2), rtol=0.03
+    )
+    scale = np.abs(want).max((1, 2))[:, None, None]
+    assert np.all(np.abs(spread - want) <= 0.03 * scale)
+    # symmetric, positive semi-definite, next to nothing along the light's own direction (the
+    # pixels' own widths lie in their tangent planes, not quite the light's)
+    np.testing.assert_allclose(spread, np.swapaxes(spread, 1, 2), atol=1e-7)
+    assert np.all(np.linalg.eigvalsh(spread) > -1e-9)
+    assert np.all(
+        np.abs(np.einsum("ki,kij,kj->k", dirs_k, spread, dirs_k)) < 1e-2 * np.trace(spread, axis1=1, axis2=2)
+    )

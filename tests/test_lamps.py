@@ -157,6 +157,35 @@ def test_lookups_interpolate_the_coverage_bilinearly(mesh):
     np.testing.assert_array_equal(np.asarray(lamp_visibility(img, behind[None])), 1.0)
 
 
+@pytest.mark.parametrize("height", [0.5, 1.5])
+def test_a_regions_spread_gives_the_penumbra_of_a_box_light(mesh, height):
+    """With ``spread`` a lookup behind a straight edge follows the penumbra of a box-shaped region
+    of half-width a: the visible fraction ``clip((x + a·t) / (2·a·t), 0, 1)`` at a distance x past
+    the edge's shadow, t the blocker's height above the receiver (the blocker search finds it); a
+    spread of zero is the plain bilinear lookup; a receiver that sees no blocker sees the lamp."""
+    # a 1 × 2 square at y = height over x in [-1, 0]: its edge x = 0 runs along z
+    sq_v = jnp.asarray([[-1, height, -1], [0, height, -1], [0, height, 1], [-1, height, 1]], jnp.float32)
+    sq_f = jnp.asarray([[0, 1, 2], [0, 2, 3]], jnp.int32)
+    d = jnp.asarray([[0.0, 1.0, 0.0]], jnp.float32)  # a lamp overhead: its image's e1 is x
+    img = lamp_images(sq_v, sq_f, d, 128)
+    np.testing.assert_allclose(np.asarray(img.e1[0]), [1.0, 0.0, 0.0], atol=1e-6)
+    a = 0.15
+    spread = jnp.asarray((a * a / 3.0) * (np.eye(3) - np.outer([0, 1, 0], [0, 1, 0]))[None], jnp.float32)
+    x = np.linspace(-0.4, 0.4, 81)
+    pts = jnp.asarray(np.stack([x, np.zeros_like(x), np.full_like(x, 0.1)], -1), jnp.float32)
+    got = np.asarray(lamp_visibility(img, pts, spread=spread))[:, 0]
+    want = np.clip((x + a * height) / (2 * a * height), 0.0, 1.0)
+    plain = np.asarray(lamp_visibility(img, pts))[:, 0]
+    # 4 taps across the edge: a staircase of quarter steps about the ramp, softened by a pixel
+    assert np.max(np.abs(got - want)) < 0.14
+    assert np.mean(np.abs(got - want)) < 0.04
+    assert np.mean(np.abs(plain - want)) > 2 * np.mean(np.abs(got - want))  # the plain lookup: a hard edge
+    assert np.all(np.diff(got) >= -1e-6)  # brighter away from the square
+    np.testing.assert_array_equal(np.asarray(lamp_visibility(img, pts, spread=0 * spread)), plain[:, None])
+    far = jnp.asarray([[3.0, 0.0, 0.0]], jnp.float32)  # no blocker within reach
+    np.testing.assert_array_equal(np.asarray(lamp_visibility(img, far, spread=spread)), 1.0)
+
+
 def test_bad_input_is_refused(mesh):
     v, f = mesh
     d = jnp.asarray([[0.0, 1.0, 0.0]], jnp.float32)

@@ -228,6 +228,7 @@ def test_light_visibility_auto_takes_the_images_where_they_apply(tmp_path):
         AUTO_ENVIRONMENT_LIGHTS_DEFORMING,
         AUTO_ENVIRONMENT_LIGHTS_STATIC,
         AUTO_MAPS_GRID,
+        AUTO_PENUMBRA_PAIRS,
         build_scene,
     )
 
@@ -346,6 +347,23 @@ def test_light_visibility_auto_takes_the_images_where_they_apply(tmp_path):
     assert lamps({**base, "environment": studio, "method": {"light_visibility": "sh"}}) == 0
     with pytest.raises(ConfigError, match="lamp_images"):
         config_from_dict({**base, "method": {"lamp_images": 4}})
+
+    def penumbrae(d):
+        return build_scene(config_from_dict(d, root=tmp_path)).method.lamp_penumbrae
+
+    # lamp_penumbrae "auto": widened lookups where the fixed receivers times the lamps are few
+    # enough (this 2 × 2 plane and 256 lamps: 1024 pairs), else the plain one
+    many = (AUTO_PENUMBRA_PAIRS // K) + 1  # receivers: one plane row too many
+    wide = {**base["receiver"], "resolution": [many, 1]}
+    assert penumbrae({**base, "environment": studio}) == "region"
+    assert penumbrae({**base, "environment": studio, "receiver": wide}) == "none"
+    assert penumbrae(base) == "none"  # no lamps
+    assert penumbrae({**base, "environment": studio, "method": {"lamp_penumbrae": "none"}}) == "none"
+    assert penumbrae(
+        {**base, "environment": studio, "receiver": wide, "method": {"lamp_penumbrae": "region"}}
+    ) == ("region")
+    with pytest.raises(ConfigError, match="lamp_penumbrae"):
+        config_from_dict({**base, "method": {"lamp_penumbrae": "soft"}})
 
     assert sizes(base) == ((64, 64), (8, 16))
     assert sizes({**base, "light": []}) == ((32, 32), (4, 8))  # the n-band path

@@ -13,6 +13,7 @@ from ._build import AUTO_ENVIRONMENT_LIGHTS_DEFORMING as AUTO_ENVIRONMENT_LIGHTS
 from ._build import AUTO_ENVIRONMENT_LIGHTS_STATIC as AUTO_ENVIRONMENT_LIGHTS_STATIC
 from ._build import AUTO_LAMP_TESTS_PER_FACE as AUTO_LAMP_TESTS_PER_FACE
 from ._build import AUTO_MAPS_GRID as AUTO_MAPS_GRID
+from ._build import AUTO_PENUMBRA_PAIRS as AUTO_PENUMBRA_PAIRS
 from ._build import auto_light_path as auto_light_path
 from ._build import build_scene as build_scene
 from ._build import clear_file_cache as clear_file_cache

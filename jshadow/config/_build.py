@@ -258,6 +258,7 @@ _LIGHT_KEYS = (
     "self_maps_grid",
     "self_maps_resolution",
     "contact_visibility",
+    "lamp_penumbrae",
 )
 _N_BAND = {k: _AUTO_FALLBACK[k] for k in _LIGHT_KEYS}
 # what directions = "auto" and light_cap = "auto" take with the occlusion images: sharper images
@@ -281,6 +282,11 @@ AUTO_MAPS_GRID = (12, 24)
 # the twisting spot cow 0.05 above its floor 1.90 -> 0.53 % relative RMSE at a 32² plane (98 ms per
 # frame), not at 128² (5.3e9 tests)
 AUTO_CONTACT_TESTS = 1.0e9
+# lamp_penumbrae = "auto": the lookups widened to the lamps' regions where the fixed receivers times
+# the lamps are at most this many pairs. They cost about 48 ns a pair (against 5 ns for the plain
+# lookup; the animated bunny's 160² plane and 64 lamps: 77 against 7.8 ms,
+# benchmarks/bench_lamp_penumbra.py), so this bounds them to about 12 ms a frame
+AUTO_PENUMBRA_PAIRS = 2**18
 AUTO_MAPS_EDGE_PIXELS = 3.0
 AUTO_MAPS_RESOLUTION = (64, 160)  # the range of that resolution, in steps of 32
 
@@ -364,6 +370,10 @@ def auto_light_path(
     "rays" where ``receivers`` (the fixed receivers' points) are given and the casts take at most
     :data:`AUTO_CONTACT_TESTS` ray–triangle tests per frame at four times of the animation
     (:func:`jshadow.scene.contact_ray_tests`), else "field".
+    With the lamp images, ``lamp_penumbrae = "region"`` where the fixed ``receivers`` times the
+    lamps are at most :data:`AUTO_PENUMBRA_PAIRS` (each lookup widened to the penumbra of the map
+    region its lamp stands for, about 10× the plain lookup's cost; the animated bunny at a 32²
+    plane: max 10.1 → 6.7 %, BENCHMARKS.md "Lamp penumbrae"), else "none".
     (For a config, :func:`build_scene` asks this only for the default preset without ``[fit]``.)
 
     Why: the n-band path cannot shadow small bright sources within the accuracy targets (exact
@@ -403,6 +413,8 @@ def auto_light_path(
         rays = math.prod(CONTACT_GRID) + lamps + (cap[0] * cap[1] if has_lights else 0)
         if contact_ray_tests(occluders, receivers, rays) <= AUTO_CONTACT_TESTS:
             contact = {"contact_visibility": "rays"}
+    pairs = (receivers.shape[0] if receivers is not None else math.inf) * k
+    penumbrae = "region" if images and k and pairs <= AUTO_PENUMBRA_PAIRS else "none"
     if images:
         return {
             "light_visibility": "images",
@@ -412,6 +424,7 @@ def auto_light_path(
             "directions": AUTO_IMAGE_DIRECTIONS if has_lights else _N_BAND["directions"],
             "light_cap": AUTO_LIGHT_CAP if has_lights else _N_BAND["light_cap"],
             "lamp_images": AUTO_LAMP_IMAGES if k else 0,
+            "lamp_penumbrae": penumbrae,
             **maps,
             **contact,
         }

@@ -27,6 +27,7 @@ from ._schema import (
     BSV_IMAGES,
     CONTACT_VISIBILITIES,
     ENVIRONMENT_TYPES,
+    LAMP_PENUMBRAE,
     LIGHT_IMAGES,
     LIGHT_TYPES,
     LIGHT_VISIBILITIES,
@@ -206,6 +207,7 @@ _METHOD_KEYS = (
     "self_maps_grid",
     "self_maps_resolution",
     "contact_visibility",
+    "lamp_penumbrae",
 )
 
 
@@ -254,6 +256,7 @@ def _method(t: _Table) -> MethodConfig:
             t, "self_maps_resolution", lambda: t.integer("self_maps_resolution", 64, lo=8)
         ),
         contact_visibility=t.string("contact_visibility", "auto", choices=("auto", *CONTACT_VISIBILITIES)),
+        lamp_penumbrae=t.string("lamp_penumbrae", "auto", choices=("auto", *LAMP_PENUMBRAE)),
     )
     try:
         return MethodConfig(**cfg)

@@ -23,6 +23,7 @@ from ..entities import BSV_CENTERS as BSV_CENTERS
 from ..entities import BSV_GRADIENTS as BSV_GRADIENTS
 from ..entities import BSV_IMAGES as BSV_IMAGES
 from ..entities import CONTACT_VISIBILITIES as CONTACT_VISIBILITIES
+from ..entities import LAMP_PENUMBRAE as LAMP_PENUMBRAE
 from ..entities import LIGHT_IMAGES as LIGHT_IMAGES
 from ..entities import LIGHT_VISIBILITIES as LIGHT_VISIBILITIES
 from ..entities import SELF_VISIBILITIES as SELF_VISIBILITIES
@@ -91,6 +92,7 @@ _AUTO_FALLBACK = {
     "self_maps_grid": (8, 16),
     "self_maps_resolution": 64,
     "contact_visibility": "field",
+    "lamp_penumbrae": "none",
 }
 
 
@@ -149,6 +151,10 @@ class MethodConfig(eqx.Module):
     rays, :class:`jshadow.entities.Method`; "auto", the default: "rays" where every mesh keeps its
     shape, they are cast once, and over a deforming mesh where a frame's casts take at most
     :data:`jshadow.config.AUTO_CONTACT_TESTS` ray–triangle tests, else "field").
+    ``lamp_penumbrae`` "auto" | "none" | "region" (lamp lookups widened to the penumbrae of the
+    map regions the lamps stand for, :class:`jshadow.entities.Method`; "auto", the default:
+    "region" where the lamp images are taken and the fixed receivers times the lamps are at most
+    :data:`jshadow.config.AUTO_PENUMBRA_PAIRS`, else "none").
     """
 
     preset: str = eqx.field(static=True, default="default")
@@ -177,6 +183,7 @@ class MethodConfig(eqx.Module):
     self_maps_grid: tuple[int, int] | str = eqx.field(static=True, default="auto")
     self_maps_resolution: int | str = eqx.field(static=True, default="auto")
     contact_visibility: str = eqx.field(static=True, default="auto")
+    lamp_penumbrae: str = eqx.field(static=True, default="auto")
 
     def __check_init__(self):
         if self.model not in MODELS:
@@ -228,6 +235,7 @@ class MethodConfig(eqx.Module):
                 self_maps_grid=tuple(chosen["self_maps_grid"]),
                 self_maps_resolution=chosen["self_maps_resolution"],
                 contact_visibility=chosen["contact_visibility"],
+                lamp_penumbrae=chosen["lamp_penumbrae"],
             )
         except (ValueError, TypeError) as err:
             raise ConfigError(None, None, str(err)) from None
