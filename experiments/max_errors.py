@@ -22,11 +22,17 @@ max error on four. This script measures what limits those maxima:
 * ``lamps``: the animated bunny's plane with the lamps' visibility by exact rays (point lamps, no
   images) at 64, 256 and 1024 lamps, and at 1024 with the map split at 0.1 × its mean (nearly all
   of the map in lamps), through :class:`jshadow.Renderer` with
-  ``jshadow.scene.lamp_visibility`` replaced for the run.
+  ``jshadow.scene.lamp_visibility`` replaced for the run;
+* ``pixels``: the same plane's largest errors under the plain lookups (receivers 911 and 592),
+  against the map itself by exact rays: every map pixel sampled S × S (S = 1, 2, 4; uniform in
+  cos θ and φ within the pixel, the reference's own sampling density) against the reference, and
+  the map's bright part (split at 2 × its mean) by 64 / 256 / 1024 point lamps by exact rays
+  against its pixels sampled 4 × 4: what a lamp's point costs where a shadow's edge crosses the
+  studio map's compact key light (``method.lamp_penumbrae``).
 
 Usage (repository root, project environment active)::
 
-    python experiments/max_errors.py [--parts worst transfer rings lamps]
+    python experiments/max_errors.py [--parts worst transfer rings lamps pixels]
 
 Writes ``experiments/results/max_errors.json``.
 """
@@ -280,7 +286,7 @@ def lamps(name: str = "bunny_animated_last") -> dict:
     _, v, f, _ = _pose(name)
     vj, fj = jnp.asarray(v), jnp.asarray(f)
 
-    def exact(images, points, lamps=slice(None)):
+    def exact(images, points, lamps=slice(None), spread=None):
         d = images.directions[lamps].astype(points.dtype)
         return 1.0 - ray_fan_any_hit(points, d, vj, fj, t_min=1e-4).astype(points.dtype)
 
@@ -319,9 +325,77 @@ def lamps(name: str = "bunny_animated_last") -> dict:
     return out
 
 
+def _map_rays(env, sub: int):
+    """Directions (M, 3), radiance (M, 3) and solid angles (M,) of a lat-long map's pixels, each
+    sampled ``sub`` × ``sub`` (uniform in cos θ and in φ within the pixel)."""
+    img = np.asarray(env.image, np.float64) * np.asarray(env.radiance, np.float64)
+    h, w = img.shape[:2]
+    ce = np.cos(np.pi * np.arange(h + 1) / h)
+    at = (np.arange(sub) + 0.5) / sub
+    cz = ce[:-1, None] + (ce[1:, None] - ce[:-1, None]) * at[None, :]  # (H, S)
+    phi = 2 * np.pi * (np.arange(w)[:, None] + at[None, :]) / w  # (W, S)
+    st = np.sqrt(np.maximum(1 - cz**2, 0.0))[:, :, None, None]
+    d = np.stack(
+        np.broadcast_arrays(
+            st * np.cos(phi)[None, None], cz[:, :, None, None], -st * np.sin(phi)[None, None]
+        ),
+        -1,
+    ).reshape(-1, 3)
+    omega = (2 * np.pi / w) * (ce[:-1] - ce[1:]) / sub**2
+    radiance = np.broadcast_to(img[:, None, :, None, :], (h, sub, w, sub, 3)).reshape(-1, 3)
+    weight = np.broadcast_to(omega[:, None, None, None], (h, sub, w, sub)).reshape(-1)
+    return d, radiance, weight
+
+
+def pixels(name: str = "bunny_animated_last", receivers=(911, 592)) -> dict:
+    """The plane's irradiance at ``receivers`` from the map by exact rays over its sub-sampled
+    pixels, and the bright part's by point lamps against its pixels (module docstring)."""
+    from jshadow.envlights import split_environment
+
+    scene, frame, _, ref, _ = _default_scene(name)
+    _, v, f, lift = _pose(name)
+    vj, fj = jnp.asarray(v), jnp.asarray(f)
+    pts, nrm = (np.asarray(x) for x in receivers_at(scene, frame))
+    mean = float(np.mean(ref["mean"]))
+    out = {"mean_irradiance": mean, "receivers": {}}
+
+    def free(o, d):
+        hit = ray_fan_any_hit(jnp.asarray(o, jnp.float32), jnp.asarray(d, jnp.float32), vj, fj, t_min=1e-4)
+        return ~np.asarray(hit)
+
+    for r in receivers:
+        p, n = pts[r], nrm[r]
+        o = p + lift * n
+        row = {"reference": float(ref["mean"][r, 1]), "reference_stderr": float(ref["stderr"][r, 1])}
+        for sub in (1, 2, 4):
+            d, rad, wt = _map_rays(scene.environment, sub)
+            c = d @ n
+            up = c > 0
+            vis = free(o, d[up])
+            e = float((vis * c[up] * wt[up] * rad[up, 1]).sum())
+            row[f"map_{sub}x{sub}_pct"] = 100 * (e - row["reference"]) / mean
+        d, rad, wt = _map_rays(scene.environment, 4)
+        c = d @ n
+        up = c > 0
+        vis = free(o, d[up])
+        for count in (64, 256, 1024):
+            rest, lights = split_environment(scene.environment, count, 2.0)
+            rest_rad = _map_rays(rest, 4)[1]
+            bright = rad[up, 1] - rest_rad[up, 1]
+            e_true = float((vis * c[up] * wt[up] * bright).sum())
+            e_open = float((c[up] * wt[up] * bright).sum())
+            ld, le = np.asarray(lights.directions, np.float64), np.asarray(lights.energy, np.float64)[:, 1]
+            lc = np.maximum(ld @ n, 0.0)
+            frac = float((free(o, ld) * lc * le).sum() / max((lc * le).sum(), 1e-300))
+            row[f"points_{count}_pct"] = 100 * (e_open * frac - e_true) / mean
+        out["receivers"][str(r)] = row
+        print(f"  receiver {r}: " + ", ".join(f"{k} {x:+.2f}" for k, x in row.items() if k.endswith("_pct")))
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--parts", nargs="+", default=["worst", "transfer", "rings", "lamps"])
+    ap.add_argument("--parts", nargs="+", default=["worst", "transfer", "rings", "lamps", "pixels"])
     args = ap.parse_args()
     result = json.loads(OUT.read_text()) if OUT.exists() else {}
     result.update({"git": git_state(), "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())})
@@ -343,6 +417,9 @@ def main() -> None:
     if "lamps" in args.parts:
         print("the animated bunny's plane with exact lamp visibility:")
         result["lamps"] = lamps()
+    if "pixels" in args.parts:
+        print("the animated bunny's plane against the map's pixels by exact rays (% of the mean):")
+        result["pixels"] = pixels()
     OUT.parent.mkdir(parents=True, exist_ok=True)
     OUT.write_text(json.dumps(result, indent=1))
     print(f"wrote {OUT}")
