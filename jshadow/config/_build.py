@@ -283,9 +283,10 @@ AUTO_MAPS_GRID = (12, 24)
 # frame), not at 128² (5.3e9 tests)
 AUTO_CONTACT_TESTS = 1.0e9
 # lamp_penumbrae = "auto": the lookups widened to the lamps' regions where the fixed receivers times
-# the lamps are at most this many pairs. They cost about 48 ns a pair (against 5 ns for the plain
-# lookup; the animated bunny's 160² plane and 64 lamps: 77 against 7.8 ms,
-# benchmarks/bench_lamp_penumbra.py), so this bounds them to about 12 ms a frame
+# the lamps are at most this many pairs. They cost 43-48 ns a pair alone (the plain lookup 5 ns; the
+# animated bunny's 160² plane and 64 lamps: 70-77 against 7.7-7.8 ms,
+# benchmarks/bench_lamp_penumbra.py) and about 75 ns in a frame (the bending airplane's 1024 x 128:
+# shading 4.0 -> 13.9 ms), so this bounds them to about 20 ms a frame
 AUTO_PENUMBRA_PAIRS = 2**18
 AUTO_MAPS_EDGE_PIXELS = 3.0
 AUTO_MAPS_RESOLUTION = (64, 160)  # the range of that resolution, in steps of 32

@@ -357,11 +357,12 @@ def lamp_visibility(
     (as percentage-closer soft shadows do). Where no blocker is met it is the plain lookup.
     Why: a lamp is a point, and 64 of them on a compact key light are a staircase of hard edges.
     On the animated bunny's last pose under the studio map, at a plane receiver 1.6 units behind
-    it, 64 point lamps by exact rays are 4.7 % of the mean irradiance off the map's own shadow
-    (its pixels sampled 4 × 4 by exact rays), and the plain lookups 10.1 %; with the penumbrae the
-    plane's largest error is 4.7 % of its mean against 7.1 % (BENCHMARKS.md "Lamp penumbrae").
-    Cost: 73 gathers a pair against 4, about 10× the plain lookups (77 against 7.8 ms for 160² ×
-    64 pairs, ``benchmarks/bench_lamp_penumbra.py``). Limitations: one blocker depth per lookup
+    it, 64 point lamps by exact rays are 5.0 % of the mean irradiance off the map's own shadow
+    (its pixels sampled 4 × 4 by exact rays, ``experiments/max_errors.py --parts pixels``), and the
+    plain lookups 10.1 %; with the penumbrae the plane's largest error is 4.7 % of its mean
+    against 7.1 % (BENCHMARKS.md "Lamp penumbrae"). Cost: 73 gathers a pair against 4, about 9×
+    the plain lookups (70–77 against 7.7–7.8 ms for 160² × 64 pairs,
+    ``benchmarks/bench_lamp_penumbra.py``). Limitations: one blocker depth per lookup
     (a planar blocker); a region's shape is its box; a blocker nearer than a pixel's worth of
     penumbra keeps the pixel-wide edge; the taps are a staircase of 4 steps where the penumbra
     spans many pixels."""
