@@ -208,7 +208,8 @@ class Method:
     penumbra of the map region the lamp stands for (the region's angular extent times the distance
     to the blocker, averaged over taps in the image: :func:`jshadow.visibility.lamp_visibility`
     with ``spread``) instead of one bilinear lookup, whose edge is a pixel wide at any distance;
-    about 10× the lookups' cost. "none" (default): the bilinear lookup.
+    about 10× the lookups' cost; without lamp images (``lamp_images`` 0 or no environment lights)
+    it changes nothing. "none" (default): the bilinear lookup.
     """
 
     sh_bands: int = 4  # n: n² coefficients
