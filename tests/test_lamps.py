@@ -184,6 +184,12 @@ def test_a_regions_spread_gives_the_penumbra_of_a_box_light(mesh, height):
     np.testing.assert_array_equal(np.asarray(lamp_visibility(img, pts, spread=0 * spread)), plain[:, None])
     far = jnp.asarray([[3.0, 0.0, 0.0]], jnp.float32)  # no blocker within reach
     np.testing.assert_array_equal(np.asarray(lamp_visibility(img, far, spread=spread)), 1.0)
+    # no derivative, finite zeros: the points and the spread are held fixed (the images are binary),
+    # also for a region of zero spread (an empty one)
+    gs, gp = jax.grad(lambda s, p: jnp.sum(lamp_visibility(img, p, spread=s)), argnums=(0, 1))(
+        0 * spread, pts
+    )
+    assert np.all(np.asarray(gs) == 0) and np.all(np.asarray(gp) == 0)
 
 
 def test_bad_input_is_refused(mesh):

@@ -57,6 +57,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
+from .._numerics import safe_sqrt
 from ..geometry import bounding_sphere
 from ._raycast import _onb
 
@@ -388,8 +389,8 @@ def lamp_visibility(
     e1, e2 = images.e1[lamps].astype(dt), images.e2[lamps].astype(dt)
 
     def half_width(e):  # (k,) pixels of edge per world unit of blocker distance
-        var = jnp.maximum(jnp.einsum("ki,kij,kj->k", e, s, e), 0.0)
-        return jnp.minimum(jnp.sqrt(3.0 * var), PENUMBRA_MAX_HALF_WIDTH)[None, :] / pixel
+        var = jnp.einsum("ki,kij,kj->k", e, s, e)
+        return jnp.minimum(safe_sqrt(3.0 * var), PENUMBRA_MAX_HALF_WIDTH)[None, :] / pixel
 
     a1, a2 = half_width(e1), half_width(e2)
     reach = jnp.maximum(images.radius.astype(dt) - z, 0.0)  # the farthest blocker: the sphere's far side
