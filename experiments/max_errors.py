@@ -1,7 +1,7 @@
-"""Where the default's largest errors come from, on the four scenes whose max error exceeds 5 %.
+"""Where the default's largest errors come from, on the four scenes whose max error is largest.
 
 The default meets ≤ 1 % relative RMSE on every scene of ``experiments/defaults.py`` but not ≤ 5 %
-max error on four. This script measures what limits those maxima:
+max error on all (BENCHMARKS.md, the latest run). This script measures what limits those maxima:
 
 * ``worst``: for each of the four, the default's ten largest errors against the cached Monte Carlo
   reference (``experiments/results/refs/``), each with where it is (plane or own vertex), the
@@ -367,17 +367,13 @@ def pixels(name: str = "bunny_animated_last", receivers=(911, 592)) -> dict:
         p, n = pts[r], nrm[r]
         o = p + lift * n
         row = {"reference": float(ref["mean"][r, 1]), "reference_stderr": float(ref["stderr"][r, 1])}
-        for sub in (1, 2, 4):
+        for sub in (1, 2, 4):  # the last one's rays are kept for the lamps below
             d, rad, wt = _map_rays(scene.environment, sub)
             c = d @ n
             up = c > 0
             vis = free(o, d[up])
             e = float((vis * c[up] * wt[up] * rad[up, 1]).sum())
             row[f"map_{sub}x{sub}_pct"] = 100 * (e - row["reference"]) / mean
-        d, rad, wt = _map_rays(scene.environment, 4)
-        c = d @ n
-        up = c > 0
-        vis = free(o, d[up])
         for count in (64, 256, 1024):
             rest, lights = split_environment(scene.environment, count, 2.0)
             rest_rad = _map_rays(rest, 4)[1]

@@ -142,8 +142,9 @@ def _region_spread(dirs, weight, labels, directions, energy) -> np.ndarray:
     phi = 2.0 * np.pi * (np.arange(wd) + 0.5) / wd
     ct, st = np.cos(theta)[:, None], np.sin(theta)[:, None]
     cp, sp = np.cos(phi)[None, :], np.sin(phi)[None, :]
-    e_t = np.stack(np.broadcast_arrays(ct * cp, -st + 0 * cp, -ct * sp), -1).reshape(-1, 3)
-    e_p = np.stack(np.broadcast_arrays(-sp + 0 * st, 0 * st * cp, -cp + 0 * st), -1).reshape(-1, 3)
+    # unit tangents along θ and φ at each pixel centre, and each pixel's variance along them
+    e_t = np.stack(np.broadcast_arrays(ct * cp, -st, -ct * sp), -1).reshape(-1, 3)
+    e_p = np.broadcast_to(np.stack([-sp, np.zeros_like(sp), -cp], -1), (h, wd, 3)).reshape(-1, 3)
     var_t = np.full(h * wd, (np.pi / h) ** 2 / 12.0)
     var_p = np.broadcast_to((2.0 * np.pi / wd * st) ** 2 / 12.0, (h, wd)).reshape(-1)
     w = weight.reshape(-1)

@@ -1255,19 +1255,14 @@ def environment_visible_fraction(
                         hit = ray_sphere_any_hit(pts[:, None, :], d[None], c, r)
                         vis = vis * (1.0 - hit.astype(pts.dtype))
                         continue
-                    if img.lamps is not None and own_rows:  # the lamps' own orthographic images
-                        # not looked up at this mesh's own vertices, which take their own rows: the
-                        # chunks of receivers that are all its vertices are skipped
-                        v = over_active(
-                            lambda p, img=img, lo=lo, hi=hi: lamp_visibility(
-                                img.lamps, p, slice(lo, hi), spread
-                            ),
-                            own_rows[0] != i,
-                            (pts,),
-                            1.0,
-                        )
-                    elif img.lamps is not None:
-                        v = lamp_visibility(img.lamps, pts, slice(lo, hi), spread)
+                    if img.lamps is not None:  # the lamps' own orthographic images
+
+                        def look(p, img=img, lo=lo, hi=hi):
+                            return lamp_visibility(img.lamps, p, slice(lo, hi), spread)
+
+                        # this mesh's own vertices take their own rows below: the chunks of
+                        # receivers that are all its vertices skip the lookup
+                        v = over_active(look, own_rows[0] != i, (pts,), 1.0) if own_rows else look(pts)
                     else:
                         v = image_fan_visibility_components(img, pts, comps, axis)
                     if own_rows:  # own vertices: their exact rays instead of the lookup
