@@ -34,7 +34,9 @@ Usage (repository root, project environment active)::
 
     python experiments/max_errors.py [--parts worst transfer rings lamps pixels]
 
-Writes ``experiments/results/max_errors.json``.
+Writes ``experiments/results/max_errors.json``: the parts run replace their entries, the others'
+are kept; ``part_runs`` gives each part's commit and date as it was last run (``git`` and ``date``:
+the file's last write).
 """
 
 from __future__ import annotations
@@ -391,10 +393,13 @@ def pixels(name: str = "bunny_animated_last", receivers=(911, 592)) -> dict:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--parts", nargs="+", default=["worst", "transfer", "rings", "lamps", "pixels"])
+    parts = ["worst", "transfer", "rings", "lamps", "pixels"]
+    ap.add_argument("--parts", nargs="+", choices=parts, default=parts)
     args = ap.parse_args()
     result = json.loads(OUT.read_text()) if OUT.exists() else {}
-    result.update({"git": git_state(), "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())})
+    stamp = {"git": git_state(), "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())}
+    result.update(stamp)
+    result.setdefault("part_runs", {}).update({part: stamp for part in args.parts})
     if "worst" in args.parts:
         result["worst"] = {}
         for name in SCENES:
