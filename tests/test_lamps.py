@@ -8,6 +8,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from conftest import random_dirs
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from test_raycast import _asset
 
 from jshadow.geometry import load_mesh, normalize_to_unit_sphere
@@ -190,6 +192,50 @@ def test_a_regions_spread_gives_the_penumbra_of_a_box_light(mesh, height):
         0 * spread, pts
     )
     assert np.all(np.asarray(gs) == 0) and np.all(np.asarray(gp) == 0)
+
+
+@pytest.fixture(scope="module")
+def widened(mesh):
+    """Images of 4 random lamps of the bunny and a jitted widened lookup, compiled once for the
+    property test below (spread and points are arguments)."""
+    v, f = mesh
+    d = jnp.asarray(random_dirs(np.random.default_rng(7), (4,), np.float32))
+    img = lamp_images(v, f, d, 32)
+    return img, jax.jit(lambda p, s: lamp_visibility(img, p, spread=s)), jax.jit(
+        lambda p, s: lamp_visibility(img, p, slice(1, 3), spread=s)
+    )
+
+
+# a region's extent per lamp: none, tiny, a few degrees, wider than PENUMBRA_MAX_HALF_WIDTH allows
+_SCALES = st.sampled_from([0.0, 1e-12, 1e-3, 0.05, 1.0, 100.0])
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), scales=st.lists(_SCALES, min_size=4, max_size=4))
+def test_widened_lookups_are_finite_fractions_for_any_spread(widened, seed, scales):
+    """Any regions' spreads (zero, tiny, rank one, wider than the half-width cap), at points
+    outside, inside and far from the mesh's bounding sphere and off its images: every widened
+    lookup is finite and in [0, 1], a lamp slice gives those lamps' columns (its spreads sliced
+    alike), and a point between the mesh and a lamp (past the sphere's near side: no blocker to
+    search for) sees that lamp."""
+    img, look, look_some = widened
+    rng = np.random.default_rng(seed)
+    m = rng.normal(size=(4, 3, 3))
+    rank_one = rng.normal(size=(4, 3))
+    shapes = [m[k] @ m[k].T if k % 2 else np.outer(rank_one[k], rank_one[k]) for k in range(4)]
+    spread = jnp.asarray(np.stack([sc * sh for sc, sh in zip(scales, shapes)]), jnp.float32)
+    c, r = np.asarray(img.center), float(img.radius)
+    radii = r * np.concatenate([rng.uniform(0.0, 1.0, 24), rng.uniform(1.0, 3.0, 24), np.full(8, 50.0)])
+    # and 2 points per lamp between the mesh and it: past the bounding sphere's near side
+    d = np.repeat(np.asarray(img.directions), 2, 0)
+    toward = c + d * r * rng.uniform(1.01, 20.0, (8, 1)) + rng.uniform(-r, r, (8, 3))
+    pts = np.concatenate([c + random_dirs(rng, (56,)) * radii[:, None], toward])
+    got = np.asarray(look(jnp.asarray(pts, jnp.float32), spread))
+    assert got.shape == (64, 4) and np.all(np.isfinite(got))
+    assert np.all((got >= 0.0) & (got <= 1.0))
+    np.testing.assert_array_equal(np.asarray(look_some(jnp.asarray(pts, jnp.float32), spread)), got[:, 1:3])
+    # nothing lies ahead of a point in front of the sphere: it sees its lamp, however wide the region
+    np.testing.assert_array_equal(got[56 + np.arange(8), np.arange(8) // 2], 1.0)
 
 
 def test_bad_input_is_refused(mesh):
