@@ -201,8 +201,10 @@ def widened(mesh):
     v, f = mesh
     d = jnp.asarray(random_dirs(np.random.default_rng(7), (4,), np.float32))
     img = lamp_images(v, f, d, 32)
-    return img, jax.jit(lambda p, s: lamp_visibility(img, p, spread=s)), jax.jit(
-        lambda p, s: lamp_visibility(img, p, slice(1, 3), spread=s)
+    return (
+        img,
+        jax.jit(lambda p, s: lamp_visibility(img, p, spread=s)),
+        jax.jit(lambda p, s: lamp_visibility(img, p, slice(1, 3), spread=s)),
     )
 
 
