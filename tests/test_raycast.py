@@ -9,7 +9,14 @@ import trimesh
 from conftest import BATCH_SHAPES, random_dirs
 from trimesh.ray.ray_pyembree import RayMeshIntersector
 
-from jshadow.visibility import ray_fan_any_hit, ray_sphere_any_hit, ray_triangle_any_hit
+from jshadow.visibility import (
+    hemisphere_fan_any_hit,
+    ray_fan_any_hit,
+    ray_sphere_any_hit,
+    ray_triangle_any_hit,
+)
+from jshadow.visibility._own import _hemisphere_fans
+from jshadow.visibility._raycast import HEMISPHERE_ORIGIN_CHUNK, _faces_above
 
 _ROOT = Path(__file__).resolve().parents[1]
 
@@ -267,3 +274,43 @@ def test_zero_direction_and_validation(bunny):
         ray_fan_any_hit(np.zeros(3, np.float32), np.ones(3, np.float32), v32, f)
     with pytest.raises(ValueError, match="radius"):
         ray_sphere_any_hit(np.zeros(3), np.ones(3), np.zeros(3), np.ones(2))
+
+
+def test_hemisphere_fans_test_only_the_faces_above_and_agree_bit_for_bit(bunny, rng):
+    """:func:`hemisphere_fan_any_hit` on the own-vertex fans of a mesh (each vertex lifted along
+    its normal, directions over the normal's hemisphere, as ``self_visibility = "rays"`` casts
+    them) gives :func:`ray_fan_any_hit`'s hits exactly, with ``t_min`` and without, over several
+    runs of origins and a last one padded, while testing under half of the (vertex, face) pairs; a
+    fan with a direction below its plane keeps every face (random fans, fewer origins than a
+    run); a convex mesh, every face below every vertex's plane, has no hits; traced inputs and bad
+    shapes are refused."""
+    _, v, f = bunny
+    v32 = v.astype(np.float32)
+    scale = float(np.ptp(v, axis=0).max())
+    lift = np.float32(1e-3 * scale)
+    assert v.shape[0] > 2 * HEMISPHERE_ORIGIN_CHUNK and v.shape[0] % HEMISPHERE_ORIGIN_CHUNK
+    for offset in (lift, None):
+        o, nrm, d, _ = _hemisphere_fans(v32, f, (6, 12), offset)
+        want = np.asarray(ray_fan_any_hit(o, d, v32, f, t_min=offset))
+        got = np.asarray(hemisphere_fan_any_hit(o, d, v32, f, nrm, t_min=offset))
+        assert 0.02 < want.mean() < 0.9
+        np.testing.assert_array_equal(got, want)
+    above = np.asarray(_faces_above(o, d, v32, f, nrm))
+    assert above.mean() < 0.5
+    # random fans reach below their plane: every face is kept, and the hits are the same
+    idx = rng.choice(v.shape[0], 37, replace=False)
+    d_rand = random_dirs(rng, (37, 32), np.float32)
+    assert np.asarray(_faces_above(o[idx], d_rand, v32, f, nrm[idx])).all()
+    np.testing.assert_array_equal(
+        np.asarray(hemisphere_fan_any_hit(o[idx], d_rand, v32, f, nrm[idx], t_min=lift)),
+        np.asarray(ray_fan_any_hit(o[idx], d_rand, v32, f, t_min=lift)),
+    )
+    ico = trimesh.creation.icosphere(subdivisions=2, radius=1.0)
+    vi, fi = np.asarray(ico.vertices, np.float32), np.asarray(ico.faces, np.int32)
+    oi, ni, di, _ = _hemisphere_fans(vi, fi, (6, 12), np.float32(1e-3))
+    assert not np.asarray(_faces_above(oi, di, vi, fi, ni)).any()
+    assert not np.asarray(hemisphere_fan_any_hit(oi, di, vi, fi, ni, t_min=np.float32(1e-3))).any()
+    with pytest.raises(ValueError, match="concrete"):
+        jax.jit(lambda x: hemisphere_fan_any_hit(x, d, v32, f, nrm))(o)
+    with pytest.raises(ValueError, match="origins and normals"):
+        hemisphere_fan_any_hit(o, d[:, 0], v32, f, nrm)

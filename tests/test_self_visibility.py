@@ -130,6 +130,22 @@ def test_rays_shade_the_own_vertices_by_their_cast_transfer():
     np.testing.assert_array_equal(field[:4], e[:4])
 
 
+def test_a_concrete_cast_tests_the_faces_above_each_vertex_and_equals_the_traced_one():
+    """A concrete mesh's cast (each vertex's fan against the faces above its tangent plane,
+    :func:`jshadow.visibility.hemisphere_fan_any_hit`) gives the coefficients of the traced cast
+    (every face, as under ``jit``): the visibility and the transfer, lifted or not."""
+    occ = _torus(sections=(16, 8))
+    v = np.asarray(occ.unit_vertices) * 0.8
+    f = np.asarray(occ.faces)
+    for offset, transfer in ((None, False), (np.float32(1e-3), True)):
+        concrete = vertex_visibility_sh(v, f, 3, GRID, offset=offset, transfer=transfer)
+        traced = jax.jit(
+            lambda x, o=offset, t=transfer: vertex_visibility_sh(x, f, 3, GRID, offset=o, transfer=t)
+        )(v)
+        assert float(jnp.std(concrete[:, 0])) > 0.05  # the hole's vertices see less than the rim's
+        np.testing.assert_allclose(np.asarray(concrete), np.asarray(traced), rtol=0, atol=1e-6)
+
+
 def test_rays_fix_the_torus_self_shadowing_that_the_field_misses():
     occ = _torus()
     ref = reference(_scene(SMALL, occ), 1024, jax.random.PRNGKey(0))

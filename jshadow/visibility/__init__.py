@@ -69,6 +69,7 @@ from ._own_maps import near_any_hit as near_any_hit
 from ._own_maps import ring_faces as ring_faces
 from ._own_maps import vertex_lamp_visibility as vertex_lamp_visibility
 from ._own_maps import vertex_transfer_maps as vertex_transfer_maps
+from ._raycast import hemisphere_fan_any_hit as hemisphere_fan_any_hit
 from ._raycast import ray_fan_any_hit as ray_fan_any_hit
 from ._raycast import ray_sphere_any_hit as ray_sphere_any_hit
 from ._raycast import ray_triangle_any_hit as ray_triangle_any_hit

@@ -24,12 +24,11 @@ from jaxtyping import Array, ArrayLike, Float, Int
 
 from ..geometry import vertex_normals
 from ..sh import hemisphere_grid, project, rotate, sphere_grid
-from ._raycast import _onb, ray_fan_any_hit
+from ._raycast import _onb, hemisphere_fan_any_hit, ray_fan_any_hit
 
 __all__ = ["vertex_visibility_sh"]
 
 
-@partial(jax.jit, static_argnames=("n", "grid", "hemisphere", "transfer"))
 def vertex_visibility_sh(
     vertices: Float[ArrayLike, "V 3"],
     faces: Int[ArrayLike, "F 3"],
@@ -89,21 +88,50 @@ def vertex_visibility_sh(
     Returns:
         (V, n²) coefficients, dtype of ``vertices``.
     """
+    grid = tuple(int(x) for x in grid)
     vertices = jnp.asarray(vertices)
+    traced = any(isinstance(x, jax.core.Tracer) for x in (vertices, faces, offset))
+    if not hemisphere or traced:
+        return _vertex_visibility_sh(vertices, faces, n, grid, hemisphere, offset, transfer)
+    # a concrete mesh: each vertex's fan lies above its normal's plane, so it is tested against only
+    # the faces that reach above that plane (the same hits)
+    origins, normals, dirs, frame = _hemisphere_fans(vertices, faces, grid, offset)
+    hit = hemisphere_fan_any_hit(origins, dirs, vertices, faces, normals, t_min=offset)
+    return _hemisphere_sh(hit, frame, n, grid, transfer)
+
+
+@partial(jax.jit, static_argnames=("grid",))
+def _hemisphere_fans(vertices, faces, grid, offset):
+    """Origins (V, 3), normals (V, 3), hemisphere directions (V, K, 3) and local → world frames
+    (V, 3, 3) of :func:`vertex_visibility_sh`'s fans."""
     normals = vertex_normals(vertices, jnp.asarray(faces))
     origins = vertices if offset is None else vertices + jnp.asarray(offset, vertices.dtype) * normals
+    local, _ = hemisphere_grid(*grid, vertices.dtype)  # z >= 0
+    e1, e2 = _onb(normals)
+    frame = jnp.stack([e1, e2, normals], -1)  # (V, 3, 3): local -> world
+    return origins, normals, jnp.einsum("vij,kj->vki", frame, local), frame
+
+
+@partial(jax.jit, static_argnames=("n", "grid", "transfer"))
+def _hemisphere_sh(hit, frame, n, grid, transfer):
+    local, w = hemisphere_grid(*grid, frame.dtype)
+    vis = (~hit).astype(frame.dtype)
+    if transfer:
+        vis = vis * local[:, 2]
+    return rotate(project(vis, local, w, n), frame)
+
+
+@partial(jax.jit, static_argnames=("n", "grid", "hemisphere", "transfer"))
+def _vertex_visibility_sh(vertices, faces, n, grid, hemisphere, offset, transfer):
     if not hemisphere:
+        normals = vertex_normals(vertices, jnp.asarray(faces))
+        origins = vertices if offset is None else vertices + jnp.asarray(offset, vertices.dtype) * normals
         dirs, w = sphere_grid(*grid, vertices.dtype)
         hit = ray_fan_any_hit(origins, dirs, vertices, faces, t_min=offset)
         vis = (~hit).astype(vertices.dtype)
         if transfer:
             vis = vis * jnp.maximum(normals @ dirs.T, 0.0)
         return project(vis, dirs, w, n)
-    local, w = hemisphere_grid(*grid, vertices.dtype)  # z >= 0
-    e1, e2 = _onb(normals)
-    frame = jnp.stack([e1, e2, normals], -1)  # (V, 3, 3): local -> world
-    hit = ray_fan_any_hit(origins, jnp.einsum("vij,kj->vki", frame, local), vertices, faces, t_min=offset)
-    vis = (~hit).astype(vertices.dtype)
-    if transfer:
-        vis = vis * local[:, 2]
-    return rotate(project(vis, local, w, n), frame)
+    origins, _, dirs, frame = _hemisphere_fans(vertices, faces, grid, offset)
+    hit = ray_fan_any_hit(origins, dirs, vertices, faces, t_min=offset)
+    return _hemisphere_sh(hit, frame, n, grid, transfer)

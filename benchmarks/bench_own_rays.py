@@ -1,0 +1,87 @@
+"""The static meshes' own-vertex transfer cast, every face against the faces above each vertex.
+
+    python benchmarks/bench_own_rays.py [--meshes bunny spot] [--runs 7] [--json out.json]
+
+Each mesh (unit-sphere normalised) casts its shadowed transfer at its own vertices as
+``self_visibility = "rays"`` does (:func:`jshadow.visibility.vertex_visibility_sh`, 12 × 48
+hemisphere directions per vertex, origins lifted 10⁻³ along the normal, 4 bands): once with every
+face tested for every vertex (the whole-mesh fan, :func:`jshadow.visibility.ray_fan_any_hit`, as
+the cast did before), once with each vertex's fan tested against only the faces that reach above
+its tangent plane (:func:`jshadow.visibility.hemisphere_fan_any_hit`, the cast now). The first call
+of each (trace, compile and run, the whole-mesh one first) is reported apart, then the median of
+``--runs`` warm calls, alternating. Both give the same coefficients, which is checked here too.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import pathlib
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jshadow.geometry import load_mesh, normalize_to_unit_sphere
+from jshadow.visibility import vertex_visibility_sh
+from jshadow.visibility._own import _vertex_visibility_sh
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+GRID = (12, 48)
+LIFT = 1e-3
+
+
+def _ms(fn) -> float:
+    t0 = time.perf_counter()
+    jax.block_until_ready(fn())
+    return 1e3 * (time.perf_counter() - t0)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--meshes", nargs="+", default=["bunny", "spot"])
+    ap.add_argument("--runs", type=int, default=7)
+    ap.add_argument("--json", default=None)
+    args = ap.parse_args()
+    out = {"date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "grid": GRID, "rows": []}
+    for name in args.meshes:
+        m = load_mesh(ROOT / "assets" / f"{name}.obj", dtype=jnp.float32)
+        v, f = np.asarray(normalize_to_unit_sphere(m.vertices)), np.asarray(m.faces)
+
+        def whole(v=v, f=f):
+            return _vertex_visibility_sh(jnp.asarray(v), f, 4, GRID, True, LIFT, True)
+
+        def culled(v=v, f=f):
+            return vertex_visibility_sh(v, f, 4, GRID, offset=LIFT, transfer=True)
+
+        first_whole, first_culled = _ms(whole), _ms(culled)
+        same = bool(np.array_equal(np.asarray(whole()), np.asarray(culled())))
+        a, b = [], []
+        for _ in range(args.runs):
+            a.append(_ms(whole))
+            b.append(_ms(culled))
+        row = {
+            "mesh": name,
+            "vertices": int(v.shape[0]),
+            "faces": int(f.shape[0]),
+            "whole_first_s": first_whole / 1e3,
+            "culled_first_s": first_culled / 1e3,
+            "whole_ms": float(np.median(a)),
+            "culled_ms": float(np.median(b)),
+            "identical": same,
+        }
+        row["speedup"] = row["whole_ms"] / row["culled_ms"]
+        out["rows"].append(row)
+        print(
+            f"{name} ({v.shape[0]} vertices, {f.shape[0]} faces): every face {row['whole_ms']:.0f} ms, "
+            f"faces above {row['culled_ms']:.0f} ms ({row['speedup']:.2f}x); first calls "
+            f"{row['whole_first_s']:.1f} / {row['culled_first_s']:.1f} s; identical: {same}",
+            flush=True,
+        )
+    if args.json:
+        pathlib.Path(args.json).write_text(json.dumps(out, indent=1))
+
+
+if __name__ == "__main__":
+    main()
