@@ -494,8 +494,9 @@ def hemisphere_fan_any_hit(
     direction with ``d·n ≤ 0`` keeps every face. The own-vertex casts are such fans: each vertex's
     hemisphere of directions about its normal, from the vertex lifted along it
     (:func:`jshadow.visibility.vertex_visibility_sh`). Of the bunny's 1901 × 3798 (vertex, face)
-    pairs 18 % lie above; its 12 × 48 transfer cast took 0.42–0.47 s against 0.95–0.98 s for the
-    whole mesh (BENCHMARKS.md "Self-shadowing", the static meshes' own-vertex rays).
+    pairs 18 % lie above; its 12 × 48 transfer cast took 0.45 s against 1.01 s for every face, the
+    spot cow's 1.02 against 2.22 s (``benchmarks/bench_own_rays.py``; BENCHMARKS.md "Own-vertex
+    rays against the faces above each vertex").
 
     How: the origins are sorted by their count of faces and cut into runs of
     :data:`HEMISPHERE_ORIGIN_CHUNK`; each run is tested against its origins' own face lists (built
