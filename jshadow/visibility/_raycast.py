@@ -284,8 +284,8 @@ def ray_triangle_any_hit(
 
 
 def _fan_table(vertices, faces, t_min):
-    """Per face (padded to one multiple of 1), the rows every fan test reads: corners, canonical
-    edge orientations, validity, |normal|, coordinate scale (and the normal with ``t_min``)."""
+    """(F, rows): per face, what every fan test reads (corners, canonical edge orientations,
+    validity, |normal|, coordinate scale, and the normal where ``t_min`` is given)."""
     dtype = vertices.dtype
     faces_p, _, valid = _pad_faces(vertices, faces, 1)
     tri = vertices[faces_p]  # (F, corner, xyz)
