@@ -208,3 +208,24 @@ def test_padded_counts_are_few_and_close():
     assert np.all(padded >= counts) and np.all(padded <= 1.25 * counts + 1)
     # an octave of counts compiles at most five shapes: 1024, 1280, 1536, 1792 and 2048
     assert sorted(set(padded[(counts >= 1024) & (counts < 2048)].tolist())) == [1024, 1280, 1536, 1792, 2048]
+
+
+def test_lamp_rays_are_exact_above_each_vertex_plane_and_zero_below(bunny):
+    """The own vertices' lamp rays (``self_visibility = "rays"``, ``jshadow.scene._lamp_rays``):
+    toward a lamp above the vertex's tangent plane the exact ray's answer, tested against only the
+    faces above the plane for a concrete mesh and against every face under ``jit`` (the same
+    values); toward one on or below it 0, which the shading weighs by zero (its exact ray, into the
+    surface, is free for some)."""
+    from jshadow.scene import _lamp_rays
+
+    v, f = bunny
+    d = jnp.asarray(random_dirs(np.random.default_rng(3), (40,)), jnp.float32)
+    lift = 1e-3
+    got = np.asarray(_lamp_rays(np.asarray(v), np.asarray(f), d, lift))
+    traced = np.asarray(jax.jit(lambda x: _lamp_rays(x, f, d, lift))(v))
+    exact, cos = _exact_lamp_rays(v, f, d, lift)
+    up = cos > 0
+    np.testing.assert_array_equal(got, traced)
+    np.testing.assert_array_equal(got[up], exact[up])
+    assert 0.2 < exact[up].mean() < 0.95
+    assert np.all(got[~up] == 0) and exact[~up].max() == 1.0

@@ -466,12 +466,12 @@ HEMISPHERE_ORIGIN_CHUNK = 64
 @jax.jit
 def _faces_above(o, d, vertices, faces, normals):
     """(n, F) whether face f may meet a ray of origin i's fan: a corner above the plane through o_i
-    normal to ``normals[i]`` (beyond a rounding margin), or every face where the fan has a direction
-    with d·n ≤ 0."""
+    normal to ``normals[i]`` (beyond a rounding margin), or every face where the fan has a nonzero
+    direction with d·n ≤ 0 (a zero direction never hits)."""
     h = jnp.einsum("fkj,nj->nfk", vertices[faces], normals) - jnp.sum(o * normals, -1)[:, None, None]
     scale = jnp.max(jnp.abs(vertices)) + jnp.max(jnp.abs(o))
     above = jnp.max(h, -1) > -1e-5 * scale
-    strict = jnp.all(jnp.einsum("nkj,nj->nk", d, normals) > 0, -1)
+    strict = jnp.all((jnp.einsum("nkj,nj->nk", d, normals) > 0) | jnp.all(d == 0, -1), -1)
     return above | ~strict[:, None]
 
 
@@ -491,7 +491,9 @@ def hemisphere_fan_any_hit(
     A ray ``o + t·d`` with ``d·n > 0`` and t > 0 lies above the plane through o normal to n, so it
     cannot meet a face whose three corners lie below that plane (a face is the convex hull of its
     corners). The faces within a rounding margin of the plane are kept. An origin whose fan holds a
-    direction with ``d·n ≤ 0`` keeps every face. The own-vertex casts are such fans: each vertex's
+    nonzero direction with ``d·n ≤ 0`` keeps every face; zero directions never hit, so a fan may
+    have the directions below its plane zeroed (the own vertices' lamp rays,
+    ``jshadow.scene._lamp_rays``). The own-vertex casts are such fans: each vertex's
     hemisphere of directions about its normal, from the vertex lifted along it
     (:func:`jshadow.visibility.vertex_visibility_sh`). Of the bunny's 1901 × 3798 (vertex, face)
     pairs 18 % lie above; its 12 × 48 transfer cast took 0.45 s against 1.01 s for every face, the
