@@ -741,14 +741,15 @@ def occluder_own_light_visibility(
     ``directions`` (the environment lights of :mod:`jshadow.envlights`), by exact rays against
     the mesh (:func:`jshadow.visibility.ray_fan_any_hit`) from each vertex lifted by the scene's
     :func:`jshadow.entities.surface_offset` along its normal, hits closer than that ignored (the
-    reference renderer's convention for a receiver on a surface). Cached per concrete pose like
-    :func:`occluder_own_visibility`, and likewise raising :data:`SELF_RAYS_NO_DERIVATIVE` if
-    differentiated with respect to the vertices. With ``self_visibility = "maps"`` a concrete
-    pose's visibility comes from entry-face images along the directions (``method.lamp_images``
-    pixels, :data:`MAPS_LAMP_RESOLUTION` if 0) and rays against each vertex's two rings of faces,
-    the pairs next to a silhouette in the images tested exactly
-    (:func:`jshadow.visibility.vertex_lamp_visibility` with ``exact_ambiguous``); a traced pose is
-    cast by rays."""
+    reference renderer's convention for a receiver on a surface); 0 toward a direction on or below
+    the vertex's tangent plane, which the shading weighs by zero (:func:`_lamp_rays`). Cached per
+    concrete pose like :func:`occluder_own_visibility`, and likewise raising
+    :data:`SELF_RAYS_NO_DERIVATIVE` if differentiated with respect to the vertices. With
+    ``self_visibility = "maps"`` a concrete pose's visibility comes from entry-face images along
+    the directions (``method.lamp_images`` pixels, :data:`MAPS_LAMP_RESOLUTION` if 0) and rays
+    against each vertex's two rings of faces, the pairs next to a silhouette in the images tested
+    exactly (:func:`jshadow.visibility.vertex_lamp_visibility` with ``exact_ambiguous``); a traced
+    pose is cast by rays."""
     m = scene.method
     t = jnp.asarray(t, occ.unit_vertices.dtype)
     v = _vertices_at(occ, t)
