@@ -21,7 +21,8 @@ Figures per case and setting (``models.errors``): relative RMSE and max error ov
 the largest excess over the unoccluded reference; time per frame: the median frame of fresh
 renderers (``models.timed``: BSV, images, own-vertex casts and shading made for the frame, 32²
 plane), and the median of a renderer's frames after its first (``reshaded``: what a shape that
-does not change makes once is reused).
+does not change makes once is reused); each median over ``--runs`` frames or as many more as
+take 200 ms in all (``models.sampled_ms``: sub-millisecond frames take hundreds).
 
 Usage (repository root, project environment active)::
 
@@ -94,12 +95,13 @@ def reshaded(scene, frame, sphere_path, runs) -> float:
     rend = models.Renderer(scene, sphere_path)
     rend.frame(frame)
     static = all(shape_is_static(o) for o in scene.occluders)
-    ms = []
-    for _ in range(runs):
+
+    def sample():
         if not static:  # a deforming shape's next frame is another pose: nothing kept for it
             models.clear_pose_caches()
-        ms.append(rend.frame(frame)[1]["total_ms"])
-    return float(np.median(ms))
+        return rend.frame(frame)[1]["total_ms"]
+
+    return models.sampled_ms(sample, runs)
 
 
 def auto_keys(scene) -> dict:

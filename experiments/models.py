@@ -320,12 +320,29 @@ def _fresh_frame(scene, frame, sphere_path):
     return Renderer(scene, sphere_path).frame(frame)
 
 
+# a timing's warm samples are taken until they sum to this many ms (at least `runs`, at most
+# MAX_SAMPLES): a sub-millisecond frame's median of 3 varied by 1.36-1.65x between runs
+MIN_SAMPLED_MS = 200.0
+MAX_SAMPLES = 401
+
+
+def sampled_ms(sample, runs: int) -> float:
+    """Median of the ms that ``sample()`` returns, over ``runs`` calls or as many more as make
+    :data:`MIN_SAMPLED_MS` in all (at most :data:`MAX_SAMPLES`)."""
+    ms = [sample() for _ in range(runs)]
+    while sum(ms) < MIN_SAMPLED_MS and len(ms) < MAX_SAMPLES:
+        ms.append(sample())
+    return float(np.median(ms))
+
+
 def timed(scene, frame, sphere_path, runs=3):
+    """The frame's irradiance, its first call's ms (trace and compile included) and the median ms
+    of its fresh warm frames (:func:`sampled_ms`)."""
     t0 = time.perf_counter()
     res, _ = _fresh_frame(scene, frame, sphere_path)
     first = 1e3 * (time.perf_counter() - t0)
-    ms = [_fresh_frame(scene, frame, sphere_path)[1]["total_ms"] for _ in range(runs)]
-    return np.asarray(res.irradiance, np.float64), first, float(np.median(ms))
+    warm = sampled_ms(lambda: _fresh_frame(scene, frame, sphere_path)[1]["total_ms"], runs)
+    return np.asarray(res.irradiance, np.float64), first, warm
 
 
 def errors(approx, ref, n_plane):
