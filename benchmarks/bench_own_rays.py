@@ -10,6 +10,8 @@ the cast did before), once with each vertex's fan tested against only the faces 
 its tangent plane (:func:`jshadow.visibility.hemisphere_fan_any_hit`, the cast now). The first call
 of each (trace, compile and run, the whole-mesh one first) is reported apart, then the median of
 ``--runs`` warm calls, alternating. Both give the same coefficients, which is checked here too.
+Then the own vertices' lamp rays (``jshadow.scene._lamp_rays``, 256 random lamps, the same lift):
+every face under ``jit`` against the faces above each vertex (the lamps below it zeroed), likewise.
 """
 
 from __future__ import annotations
@@ -24,12 +26,15 @@ import jax.numpy as jnp
 import numpy as np
 
 from jshadow.geometry import load_mesh, normalize_to_unit_sphere
+from jshadow.scene import _lamp_rays
 from jshadow.visibility import vertex_visibility_sh
 from jshadow.visibility._own import _vertex_visibility_sh
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 GRID = (12, 48)
 LIFT = 1e-3
+_UNIT = np.random.default_rng(0).normal(size=(256, 3))
+LAMPS = jnp.asarray(_UNIT / np.linalg.norm(_UNIT, axis=-1, keepdims=True), jnp.float32)
 
 
 def _ms(fn) -> float:
@@ -72,11 +77,28 @@ def main() -> None:
             "identical": same,
         }
         row["speedup"] = row["whole_ms"] / row["culled_ms"]
+        traced = jax.jit(lambda x, f=f: _lamp_rays(x, f, LAMPS, LIFT))
+
+        def lamps_whole(v=v, traced=traced):
+            return traced(v)
+
+        def lamps_culled(v=v, f=f):
+            return _lamp_rays(v, f, LAMPS, LIFT)
+
+        _ms(lamps_whole), _ms(lamps_culled)
+        row["lamps_identical"] = bool(np.array_equal(np.asarray(lamps_whole()), np.asarray(lamps_culled())))
+        a, b = [], []
+        for _ in range(args.runs):
+            a.append(_ms(lamps_whole))
+            b.append(_ms(lamps_culled))
+        row["lamps_whole_ms"], row["lamps_culled_ms"] = float(np.median(a)), float(np.median(b))
         out["rows"].append(row)
         print(
             f"{name} ({v.shape[0]} vertices, {f.shape[0]} faces): every face {row['whole_ms']:.0f} ms, "
             f"faces above {row['culled_ms']:.0f} ms ({row['speedup']:.2f}x); first calls "
-            f"{row['whole_first_s']:.1f} / {row['culled_first_s']:.1f} s; identical: {same}",
+            f"{row['whole_first_s']:.1f} / {row['culled_first_s']:.1f} s; identical: {same}; 256 lamps: "
+            f"{row['lamps_whole_ms']:.0f} / {row['lamps_culled_ms']:.0f} ms, "
+            f"identical: {row['lamps_identical']}",
             flush=True,
         )
     if args.json:

@@ -9,6 +9,7 @@ import trimesh
 from conftest import BATCH_SHAPES, random_dirs
 from trimesh.ray.ray_pyembree import RayMeshIntersector
 
+import jshadow.visibility._raycast as raycast
 from jshadow.visibility import (
     hemisphere_fan_any_hit,
     ray_fan_any_hit,
@@ -276,11 +277,12 @@ def test_zero_direction_and_validation(bunny):
         ray_sphere_any_hit(np.zeros(3), np.ones(3), np.zeros(3), np.ones(2))
 
 
-def test_hemisphere_fans_test_only_the_faces_above_and_agree_bit_for_bit(bunny, rng):
+def test_hemisphere_fans_test_only_the_faces_above_and_agree_bit_for_bit(bunny, rng, monkeypatch):
     """:func:`hemisphere_fan_any_hit` on the own-vertex fans of a mesh (each vertex lifted along
     its normal, directions over the normal's hemisphere, as ``self_visibility = "rays"`` casts
     them) gives :func:`ray_fan_any_hit`'s hits exactly, with ``t_min`` and without, over several
-    runs of origins and a last one padded, while testing under half of the (vertex, face) pairs; a
+    runs of origins and a last one padded, in one block of lists or in blocks of one run, while
+    testing under half of the (vertex, face) pairs; a
     fan with a direction below its plane keeps every face (random fans, fewer origins than a
     run); a convex mesh, every face below every vertex's plane, has no hits; traced inputs and bad
     shapes are refused."""
@@ -295,6 +297,10 @@ def test_hemisphere_fans_test_only_the_faces_above_and_agree_bit_for_bit(bunny, 
         got = np.asarray(hemisphere_fan_any_hit(o, d, v32, f, nrm, t_min=offset))
         assert 0.02 < want.mean() < 0.9
         np.testing.assert_array_equal(got, want)
+    # lists made a block of origins at a time (the smallest block: one run of origins) give the same
+    monkeypatch.setattr(raycast, "HEMISPHERE_BLOCK_PAIRS", 1)
+    np.testing.assert_array_equal(np.asarray(hemisphere_fan_any_hit(o, d, v32, f, nrm)), want)
+    monkeypatch.undo()
     above = np.asarray(_faces_above(o, d, v32, f, nrm))
     assert above.mean() < 0.5
     # random fans reach below their plane: every face is kept, and the hits are the same

@@ -461,6 +461,9 @@ def ray_fan_any_hit(
 
 # the origins of one hemisphere_fan_any_hit call (one compiled kernel per mesh and fan size)
 HEMISPHERE_ORIGIN_CHUNK = 64
+# (origin, face) pairs whose corner heights one block of hemisphere_fan_any_hit's lists measures at
+# once: bounds its memory (about 13 bytes a pair) whatever the mesh size
+HEMISPHERE_BLOCK_PAIRS = 1 << 24
 
 
 @jax.jit
@@ -505,6 +508,9 @@ def hemisphere_fan_any_hit(
     on the host), as many chunks of faces as its longest list holds, in a loop whose trip count is
     traced: one compilation serves every run and pose.
 
+    Memory: the lists are made for blocks of origins of at most :data:`HEMISPHERE_BLOCK_PAIRS`
+    (origin, face) pairs (the bunny's 1901 vertices make one block).
+
     Limitations: concrete inputs only (the lists' lengths are data), no derivative (boolean).
 
     Args:
@@ -534,28 +540,31 @@ def hemisphere_fan_any_hit(
         t_min = jnp.asarray(t_min, dtype)
         if t_min.shape != ():
             raise ValueError(f"t_min must be a scalar, got shape {t_min.shape}")
-    rows, cols = np.nonzero(np.asarray(_faces_above(o, d, vertices, faces, nrm)))
-    count = np.bincount(rows, minlength=n)
-    start = np.concatenate([[0], np.cumsum(count)[:-1]])
-    cols = np.concatenate([cols.astype(np.int32), np.full(1, -1, np.int32)])  # one entry past the end
-    order = np.argsort(count, kind="stable")
     g, c = min(HEMISPHERE_ORIGIN_CHUNK, n), DEFAULT_FAN_FACE_CHUNK
     length = -(-faces.shape[0] // c) * c
     j = np.arange(length)[None, :]
+    block = max(g, HEMISPHERE_BLOCK_PAIRS // faces.shape[0] // g * g)
     parts = []
-    for a in range(0, n, g):
-        idx = order[a : a + g]
-        pad = g - idx.shape[0]  # the last run: padded with its first origin, dropped below
-        idx_p = np.concatenate([idx, np.full(pad, idx[0])])
-        lists = np.where(
-            j < count[idx_p, None], cols[np.minimum(start[idx_p, None] + j, cols.shape[0] - 1)], -1
-        )
-        steps = -(-int(count[idx].max()) // c)
-        take = jnp.asarray(idx_p)
-        hit = _listed_fan_kernel(
-            o[take], d[take], vertices, faces, jnp.asarray(lists, jnp.int32), steps, t_min, face_chunk=c
-        )
-        parts.append((idx, hit))
+    for b0 in range(0, n, block):  # the lists of a block of origins at a time
+        sl = slice(b0, min(b0 + block, n))
+        rows, cols = np.nonzero(np.asarray(_faces_above(o[sl], d[sl], vertices, faces, nrm[sl])))
+        count = np.bincount(rows, minlength=sl.stop - b0)
+        start = np.concatenate([[0], np.cumsum(count)[:-1]])
+        cols = np.concatenate([cols.astype(np.int32), np.full(1, -1, np.int32)])  # one past the end
+        order = np.argsort(count, kind="stable")
+        for a in range(0, order.shape[0], g):
+            idx = order[a : a + g]
+            pad = g - idx.shape[0]  # the last run: padded with its first origin, dropped below
+            idx_p = np.concatenate([idx, np.full(pad, idx[0])])
+            lists = np.where(
+                j < count[idx_p, None], cols[np.minimum(start[idx_p, None] + j, cols.shape[0] - 1)], -1
+            )
+            steps = -(-int(count[idx].max()) // c)
+            take = jnp.asarray(idx_p + b0)
+            hit = _listed_fan_kernel(
+                o[take], d[take], vertices, faces, jnp.asarray(lists, jnp.int32), steps, t_min, face_chunk=c
+            )
+            parts.append((idx + b0, hit))
     out = np.zeros((n, k), bool)
     for idx, hit in parts:
         out[idx] = np.asarray(hit)[: idx.shape[0]]
