@@ -1,4 +1,4 @@
-"""The static meshes' own-vertex transfer cast, every face against the faces above each vertex.
+"""The static meshes' own-vertex transfer cast, every face against the faces each ray group can reach.
 
     python benchmarks/bench_own_rays.py [--meshes bunny spot] [--runs 7] [--json out.json]
 
@@ -6,12 +6,13 @@ Each mesh (unit-sphere normalised) casts its shadowed transfer at its own vertic
 ``self_visibility = "rays"`` does (:func:`jshadow.visibility.vertex_visibility_sh`, 12 × 48
 hemisphere directions per vertex, origins lifted 10⁻³ along the normal, 4 bands): once with every
 face tested for every vertex (the whole-mesh fan, :func:`jshadow.visibility.ray_fan_any_hit`, as
-the cast did before), once with each vertex's fan tested against only the faces that reach above
-its tangent plane (:func:`jshadow.visibility.hemisphere_fan_any_hit`, the cast now). The first call
+the cast did before), once with each vertex's fan cut into groups by azimuth sector about its
+normal and each group tested against only the faces that reach above the vertex's tangent plane
+and into its sectors (:func:`jshadow.visibility.hemisphere_fan_any_hit`, the cast now). The first call
 of each (trace, compile and run, the whole-mesh one first) is reported apart, then the median of
 ``--runs`` warm calls, alternating. Both give the same coefficients, which is checked here too.
 Then the own vertices' lamp rays (``jshadow.scene._lamp_rays``, 256 random lamps, the same lift):
-every face under ``jit`` against the faces above each vertex (the lamps below it zeroed), likewise.
+every face under ``jit`` against the culled fans (the lamps below each vertex's plane zeroed), likewise.
 """
 
 from __future__ import annotations
@@ -95,7 +96,7 @@ def main() -> None:
         out["rows"].append(row)
         print(
             f"{name} ({v.shape[0]} vertices, {f.shape[0]} faces): every face {row['whole_ms']:.0f} ms, "
-            f"faces above {row['culled_ms']:.0f} ms ({row['speedup']:.2f}x); first calls "
+            f"culled {row['culled_ms']:.0f} ms ({row['speedup']:.2f}x); first calls "
             f"{row['whole_first_s']:.1f} / {row['culled_first_s']:.1f} s; identical: {same}; 256 lamps: "
             f"{row['lamps_whole_ms']:.0f} / {row['lamps_culled_ms']:.0f} ms, "
             f"identical: {row['lamps_identical']}",

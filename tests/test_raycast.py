@@ -7,9 +7,11 @@ import numpy as np
 import pytest
 import trimesh
 from conftest import BATCH_SHAPES, random_dirs
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from trimesh.ray.ray_pyembree import RayMeshIntersector
 
-import jshadow.visibility._raycast as raycast
+import jshadow.visibility._hemisphere as hemisphere
 from jshadow.visibility import (
     hemisphere_fan_any_hit,
     ray_fan_any_hit,
@@ -17,7 +19,6 @@ from jshadow.visibility import (
     ray_triangle_any_hit,
 )
 from jshadow.visibility._own import _hemisphere_fans
-from jshadow.visibility._raycast import HEMISPHERE_ORIGIN_CHUNK, _faces_above
 
 _ROOT = Path(__file__).resolve().parents[1]
 
@@ -277,46 +278,93 @@ def test_zero_direction_and_validation(bunny):
         ray_sphere_any_hit(np.zeros(3), np.ones(3), np.zeros(3), np.ones(2))
 
 
-def test_hemisphere_fans_test_only_the_faces_above_and_agree_bit_for_bit(bunny, rng, monkeypatch):
+def test_hemisphere_fans_cull_by_height_and_sector_and_agree_bit_for_bit(bunny, rng, monkeypatch):
     """:func:`hemisphere_fan_any_hit` on the own-vertex fans of a mesh (each vertex lifted along
     its normal, directions over the normal's hemisphere, as ``self_visibility = "rays"`` casts
-    them) gives :func:`ray_fan_any_hit`'s hits exactly, with ``t_min`` and without, over several
-    runs of origins and a last one padded, in one block of lists or in blocks of one run, while
-    testing under half of the (vertex, face) pairs; a
-    fan with a direction below its plane keeps every face (random fans, fewer origins than a
-    run); a convex mesh, every face below every vertex's plane, has no hits; traced inputs and bad
-    shapes are refused."""
+    them) gives :func:`ray_fan_any_hit`'s hits exactly, with ``t_min`` and without, with the lists
+    made in one block or in blocks of one origin, while listing under a fifth of the whole mesh's
+    (ray, face) pairs; fans with lamps below their plane zeroed, and random fans reaching below
+    their plane about random normals (the azimuth alone culls) agree too; a convex mesh, every face
+    below every vertex's plane, lists nothing and has no hits; traced inputs and bad shapes are
+    refused."""
     _, v, f = bunny
     v32 = v.astype(np.float32)
     scale = float(np.ptp(v, axis=0).max())
     lift = np.float32(1e-3 * scale)
-    assert v.shape[0] > 2 * HEMISPHERE_ORIGIN_CHUNK and v.shape[0] % HEMISPHERE_ORIGIN_CHUNK
+    listed = {}
+    real_kernel = hemisphere._grouped_kernel
+
+    def counting(*args, face_chunk, groups):
+        listed["rays"] = int(np.asarray(args[9]).sum()) * (args[2].shape[1] // groups)
+        return real_kernel(*args, face_chunk=face_chunk, groups=groups)
+
+    monkeypatch.setattr(hemisphere, "_grouped_kernel", counting)
     for offset in (lift, None):
         o, nrm, d, _ = _hemisphere_fans(v32, f, (6, 12), offset)
         want = np.asarray(ray_fan_any_hit(o, d, v32, f, t_min=offset))
         got = np.asarray(hemisphere_fan_any_hit(o, d, v32, f, nrm, t_min=offset))
         assert 0.02 < want.mean() < 0.9
         np.testing.assert_array_equal(got, want)
-    # lists made a block of origins at a time (the smallest block: one run of origins) give the same
-    monkeypatch.setattr(raycast, "HEMISPHERE_BLOCK_PAIRS", 1)
+        assert 0 < listed["rays"] < 0.2 * d.shape[0] * d.shape[1] * f.shape[0]
+    # lists made a block of origins at a time (the smallest block: one origin) give the same
+    monkeypatch.setattr(hemisphere, "HEMISPHERE_BLOCK_PAIRS", 1)
     np.testing.assert_array_equal(np.asarray(hemisphere_fan_any_hit(o, d, v32, f, nrm)), want)
-    monkeypatch.undo()
-    above = np.asarray(_faces_above(o, d, v32, f, nrm))
-    assert above.mean() < 0.5
-    # random fans reach below their plane: every face is kept, and the hits are the same
-    idx = rng.choice(v.shape[0], 37, replace=False)
-    d_rand = random_dirs(rng, (37, 32), np.float32)
-    assert np.asarray(_faces_above(o[idx], d_rand, v32, f, nrm[idx])).all()
+    monkeypatch.setattr(hemisphere, "HEMISPHERE_BLOCK_PAIRS", 1 << 20)
+    # lamps (not a multiple of the sectors) with those below each vertex's plane zeroed
+    lamps = random_dirs(rng, (45,), np.float32)
+    up = np.asarray(nrm) @ lamps.T > 0
+    fans = np.where(up[..., None], lamps[None], 0).astype(np.float32)
     np.testing.assert_array_equal(
-        np.asarray(hemisphere_fan_any_hit(o[idx], d_rand, v32, f, nrm[idx], t_min=lift)),
-        np.asarray(ray_fan_any_hit(o[idx], d_rand, v32, f, t_min=lift)),
+        np.asarray(hemisphere_fan_any_hit(o, fans, v32, f, nrm, t_min=lift)),
+        np.asarray(ray_fan_any_hit(o, fans, v32, f, t_min=lift)),
+    )
+    # random fans about random normals, from points near the surface
+    idx = rng.choice(v.shape[0], 37, replace=False)
+    o_r = (v32[idx] + 0.02 * scale * rng.normal(size=(37, 3))).astype(np.float32)
+    d_rand = random_dirs(rng, (37, 32), np.float32)
+    n_rand = random_dirs(rng, (37,), np.float32)
+    want_r = np.asarray(ray_fan_any_hit(o_r, d_rand, v32, f, t_min=lift))
+    assert 0.1 < want_r.mean() < 0.95
+    np.testing.assert_array_equal(
+        np.asarray(hemisphere_fan_any_hit(o_r, d_rand, v32, f, n_rand, t_min=lift)), want_r
     )
     ico = trimesh.creation.icosphere(subdivisions=2, radius=1.0)
     vi, fi = np.asarray(ico.vertices, np.float32), np.asarray(ico.faces, np.int32)
     oi, ni, di, _ = _hemisphere_fans(vi, fi, (6, 12), np.float32(1e-3))
-    assert not np.asarray(_faces_above(oi, di, vi, fi, ni)).any()
     assert not np.asarray(hemisphere_fan_any_hit(oi, di, vi, fi, ni, t_min=np.float32(1e-3))).any()
+    assert listed["rays"] == 0
     with pytest.raises(ValueError, match="concrete"):
         jax.jit(lambda x: hemisphere_fan_any_hit(x, d, v32, f, nrm))(o)
     with pytest.raises(ValueError, match="origins and normals"):
         hemisphere_fan_any_hit(o, d[:, 0], v32, f, nrm)
+
+
+@settings(max_examples=15, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), special=st.sampled_from(["none", "zero", "axis", "corner", "flat"]))
+def test_hemisphere_fans_match_the_whole_mesh_fan_on_random_soups(seed, special):
+    """Random triangle soups, origins, normals and fans (half of them above their planes), with
+    hard cases: zero directions and a zero normal, directions on and next to the normal's axis, an
+    origin on a corner, an origin in a face's plane with that plane for its own: the hits of
+    :func:`ray_fan_any_hit`, bit for bit (fixed shapes: few compilations serve every example)."""
+    r = np.random.default_rng(seed)
+    v = r.normal(size=(64, 3)).astype(np.float32)
+    f = r.integers(0, 64, size=(64, 3)).astype(np.int32)
+    o = (0.5 * r.normal(size=(20, 3))).astype(np.float32)
+    nrm = random_dirs(r, (20,), np.float32)
+    d = random_dirs(r, (20, 24), np.float32)
+    below = np.einsum("nkj,nj->nk", d[:10], nrm[:10]) < 0
+    d[:10] = np.where(below[..., None], -d[:10], d[:10])
+    if special == "zero":
+        d[:, ::3] = 0
+        nrm[3] = 0
+    elif special == "axis":
+        d[:, 0] = nrm
+        d[:, 1] = nrm + 1e-4 * r.normal(size=(20, 3)).astype(np.float32)
+    elif special == "corner":
+        o[:8] = v[f[:8, 0]]
+    elif special == "flat":
+        nrm[:8] = np.cross(v[f[:8, 1]] - v[f[:8, 0]], v[f[:8, 2]] - v[f[:8, 0]])
+        o[:8] = v[f[:8, 0]] + 0.3 * (v[f[:8, 1]] - v[f[:8, 0]])
+    want = np.asarray(ray_fan_any_hit(o, d, v, f))
+    assert want.any()
+    np.testing.assert_array_equal(np.asarray(hemisphere_fan_any_hit(o, d, v, f, nrm)), want)

@@ -2,6 +2,8 @@
 
 * :mod:`._raycast`: watertight brute-force any-hit queries (triangles, shared-origin fans, spheres),
   memory bounded for any mesh size.
+* :mod:`._hemisphere`: the same fans tested against only the faces above each origin's tangent plane
+  and within each ray group's sectors of azimuth (exact; the own-vertex casts).
 * :mod:`._frames`: the BSV shell parametrisation (polar axis world +z) and local frames.
 * :mod:`._directions`: hemisphere direction sets and closed-form cap / hemisphere SH projections.
 * :mod:`._bsv`: the BSV module, brute-force and analytic samplers, and reuse across frames.
@@ -51,6 +53,7 @@ from ._edgescan_scan import edgescan_scan_slots as edgescan_scan_slots
 from ._frames import bsv_frames as bsv_frames
 from ._frames import bsv_grid_angles as bsv_grid_angles
 from ._halfspace import halfspace_visibility_sh as halfspace_visibility_sh
+from ._hemisphere import hemisphere_fan_any_hit as hemisphere_fan_any_hit
 from ._images import OcclusionImages as OcclusionImages
 from ._images import bsv_with_occlusion_images as bsv_with_occlusion_images
 from ._images import image_fan_visibility as image_fan_visibility
@@ -69,7 +72,6 @@ from ._own_maps import near_any_hit as near_any_hit
 from ._own_maps import ring_faces as ring_faces
 from ._own_maps import vertex_lamp_visibility as vertex_lamp_visibility
 from ._own_maps import vertex_transfer_maps as vertex_transfer_maps
-from ._raycast import hemisphere_fan_any_hit as hemisphere_fan_any_hit
 from ._raycast import ray_fan_any_hit as ray_fan_any_hit
 from ._raycast import ray_sphere_any_hit as ray_sphere_any_hit
 from ._raycast import ray_triangle_any_hit as ray_triangle_any_hit

@@ -26,7 +26,8 @@ from jaxtyping import Array, ArrayLike, Float, Int
 
 from ..geometry import vertex_normals
 from ..sh import hemisphere_grid, project, rotate, sphere_grid
-from ._raycast import _onb, hemisphere_fan_any_hit, ray_fan_any_hit
+from ._hemisphere import hemisphere_fan_any_hit
+from ._raycast import _onb, ray_fan_any_hit
 
 __all__ = ["vertex_visibility_sh"]
 

@@ -40,13 +40,12 @@ from functools import partial
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jax import lax
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from .._numerics import eps, safe_sqrt
 
-__all__ = ["ray_triangle_any_hit", "ray_fan_any_hit", "hemisphere_fan_any_hit", "ray_sphere_any_hit"]
+__all__ = ["ray_triangle_any_hit", "ray_fan_any_hit", "ray_sphere_any_hit"]
 
 # Chunk sizes measured on the 2-core CPU (jax 0.10.2, bunny_small, loaded machine, min of 5):
 # general rays, 32768 rays: (ray_chunk, face_chunk) = (8192, 4) 44 ms, (8192, 8) 48 ms,
@@ -380,25 +379,6 @@ def _fan_kernel(o, d, vertices, faces, t_min=None, *, face_chunk, origin_chunk):
     return out.reshape(-1, *d.shape[1:-1])[:n]
 
 
-@partial(jax.jit, static_argnames=("face_chunk",))
-def _listed_fan_kernel(o, d, vertices, faces, lists, steps, t_min=None, *, face_chunk):
-    """:func:`_fan_kernel` for one chunk of origins ``o`` (g, 3) with fans ``d`` (g, K, 3), each
-    tested against its own list of faces: the first ``steps`` × ``face_chunk`` columns of ``lists``
-    (g, L), −1 padded, L a multiple of ``face_chunk``. ``steps`` is traced: one compilation serves
-    every length of list."""
-    table = _fan_table(vertices, faces, t_min)
-    table = jnp.concatenate([table, jnp.zeros((1, table.shape[1]), table.dtype)])  # row F: no face
-    ids = jnp.where(lists < 0, faces.shape[0], lists)
-    fold = _fan_fold(o, d, t_min, face_chunk)
-
-    def body(s, hit):
-        chunk = lax.dynamic_slice_in_dim(ids, s * face_chunk, face_chunk, axis=1)  # (g, C)
-        return fold(hit, jnp.moveaxis(table[chunk], -1, 0))[0]  # face rows (rows, g, C)
-
-    hit = lax.fori_loop(0, steps, body, jnp.zeros(d.shape[:-1], bool))
-    return hit & jnp.any(d != 0, axis=-1)
-
-
 def ray_fan_any_hit(
     origins: Float[ArrayLike, "... 3"],
     dirs: Float[ArrayLike, "... K 3"],
@@ -457,118 +437,6 @@ def ray_fan_any_hit(
         o, d, vertices.astype(dtype), faces, t_min, face_chunk=face_chunk, origin_chunk=origin_chunk
     )
     return hit.reshape(*batch, k)
-
-
-# the origins of one hemisphere_fan_any_hit call (one compiled kernel per mesh and fan size)
-HEMISPHERE_ORIGIN_CHUNK = 64
-# (origin, face) pairs whose corner heights one block of hemisphere_fan_any_hit's lists measures at
-# once: bounds its memory (about 13 bytes a pair) whatever the mesh size
-HEMISPHERE_BLOCK_PAIRS = 1 << 24
-
-
-@jax.jit
-def _faces_above(o, d, vertices, faces, normals):
-    """(n, F) whether face f may meet a ray of origin i's fan: a corner above the plane through o_i
-    normal to ``normals[i]`` (beyond a rounding margin), or every face where the fan has a nonzero
-    direction with d·n ≤ 0 (a zero direction never hits)."""
-    h = jnp.einsum("fkj,nj->nfk", vertices[faces], normals) - jnp.sum(o * normals, -1)[:, None, None]
-    scale = jnp.max(jnp.abs(vertices)) + jnp.max(jnp.abs(o))
-    above = jnp.max(h, -1) > -1e-5 * scale
-    strict = jnp.all((jnp.einsum("nkj,nj->nk", d, normals) > 0) | jnp.all(d == 0, -1), -1)
-    return above | ~strict[:, None]
-
-
-def hemisphere_fan_any_hit(
-    origins: Float[ArrayLike, "N 3"],
-    dirs: Float[ArrayLike, "N K 3"],
-    vertices: Float[ArrayLike, "V 3"],
-    faces: Int[ArrayLike, "F 3"],
-    normals: Float[ArrayLike, "N 3"],
-    *,
-    t_min: float | Float[ArrayLike, ""] | None = None,
-) -> Bool[Array, "N K"]:
-    """:func:`ray_fan_any_hit` for fans that each lie above a plane through their origin, testing
-    each origin against only the faces that reach above its plane: the same (N, K) hits, bit for
-    bit, for a fraction of the work.
-
-    A ray ``o + t·d`` with ``d·n > 0`` and t > 0 lies above the plane through o normal to n, so it
-    cannot meet a face whose three corners lie below that plane (a face is the convex hull of its
-    corners). The faces within a rounding margin of the plane are kept. An origin whose fan holds a
-    nonzero direction with ``d·n ≤ 0`` keeps every face; zero directions never hit, so a fan may
-    have the directions below its plane zeroed (the own vertices' lamp rays,
-    ``jshadow.scene._lamp_rays``). The own-vertex casts are such fans: each vertex's
-    hemisphere of directions about its normal, from the vertex lifted along it
-    (:func:`jshadow.visibility.vertex_visibility_sh`). Of the bunny's 1901 × 3798 (vertex, face)
-    pairs 18 % lie above; its 12 × 48 transfer cast took 0.45 s against 1.01 s for every face, the
-    spot cow's 1.02 against 2.22 s (``benchmarks/bench_own_rays.py``; BENCHMARKS.md "Own-vertex
-    rays against the faces above each vertex").
-
-    How: the origins are sorted by their count of faces and cut into runs of
-    :data:`HEMISPHERE_ORIGIN_CHUNK`; each run is tested against its origins' own face lists (built
-    on the host), as many chunks of faces as its longest list holds, in a loop whose trip count is
-    traced: one compilation serves every run and pose.
-
-    Memory: the lists are made for blocks of origins of at most :data:`HEMISPHERE_BLOCK_PAIRS`
-    (origin, face) pairs (the bunny's 1901 vertices make one block).
-
-    Limitations: concrete inputs only (the lists' lengths are data), no derivative (boolean).
-
-    Args:
-        origins: (N, 3); dirs: (N, K, 3); normals: (N, 3), each origin's plane normal (need not be
-            unit); t_min: as for :func:`ray_fan_any_hit`.
-    """
-    vertices, faces = _check_mesh(vertices, faces)
-    o, d, nrm = jnp.asarray(origins), jnp.asarray(dirs), jnp.asarray(normals)
-    if any(isinstance(x, jax.core.Tracer) for x in (o, d, nrm, vertices, faces, t_min)):
-        raise ValueError("hemisphere_fan_any_hit needs concrete inputs: use ray_fan_any_hit under a trace")
-    if (
-        o.ndim != 2
-        or o.shape[-1] != 3
-        or d.ndim != 3
-        or d.shape[::2] != (o.shape[0], 3)
-        or nrm.shape != o.shape
-    ):
-        raise ValueError(
-            f"origins and normals must be (N, 3) and dirs (N, K, 3), got {o.shape}, {nrm.shape} and {d.shape}"
-        )
-    dtype = jnp.result_type(o, d, vertices)
-    o, d, nrm, vertices = o.astype(dtype), d.astype(dtype), nrm.astype(dtype), vertices.astype(dtype)
-    n, k = d.shape[:2]
-    if n == 0 or k == 0 or faces.shape[0] == 0:
-        return jnp.zeros((n, k), bool)
-    if t_min is not None:
-        t_min = jnp.asarray(t_min, dtype)
-        if t_min.shape != ():
-            raise ValueError(f"t_min must be a scalar, got shape {t_min.shape}")
-    g, c = min(HEMISPHERE_ORIGIN_CHUNK, n), DEFAULT_FAN_FACE_CHUNK
-    length = -(-faces.shape[0] // c) * c
-    j = np.arange(length)[None, :]
-    block = max(g, HEMISPHERE_BLOCK_PAIRS // faces.shape[0] // g * g)
-    parts = []
-    for b0 in range(0, n, block):  # the lists of a block of origins at a time
-        sl = slice(b0, min(b0 + block, n))
-        rows, cols = np.nonzero(np.asarray(_faces_above(o[sl], d[sl], vertices, faces, nrm[sl])))
-        count = np.bincount(rows, minlength=sl.stop - b0)
-        start = np.concatenate([[0], np.cumsum(count)[:-1]])
-        cols = np.concatenate([cols.astype(np.int32), np.full(1, -1, np.int32)])  # one past the end
-        order = np.argsort(count, kind="stable")
-        for a in range(0, order.shape[0], g):
-            idx = order[a : a + g]
-            pad = g - idx.shape[0]  # the last run: padded with its first origin, dropped below
-            idx_p = np.concatenate([idx, np.full(pad, idx[0])])
-            lists = np.where(
-                j < count[idx_p, None], cols[np.minimum(start[idx_p, None] + j, cols.shape[0] - 1)], -1
-            )
-            steps = -(-int(count[idx].max()) // c)
-            take = jnp.asarray(idx_p + b0)
-            hit = _listed_fan_kernel(
-                o[take], d[take], vertices, faces, jnp.asarray(lists, jnp.int32), steps, t_min, face_chunk=c
-            )
-            parts.append((idx + b0, hit))
-    out = np.zeros((n, k), bool)
-    for idx, hit in parts:
-        out[idx] = np.asarray(hit)[: idx.shape[0]]
-    return jnp.asarray(out)
 
 
 # --------------------------------------------------------------------------------------------
