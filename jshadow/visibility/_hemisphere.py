@@ -80,10 +80,12 @@ def _direction_keys(d, normals, sectors):
     direction near the normal's axis (or any direction of a zero normal), S + 1 for a zero
     direction; and (n,) whether every nonzero direction lies strictly above the plane."""
     nrm, e1, e2 = _frame(normals)
-    x = jnp.einsum("nkj,nj->nk", d, e1)
-    y = jnp.einsum("nkj,nj->nk", d, e2)
-    z = jnp.einsum("nkj,nj->nk", d, nrm)
-    length2 = jnp.sum(d * d, -1)
+
+    def dot(e):  # (n, K), elementwise (fused)
+        return d[..., 0] * e[:, None, 0] + d[..., 1] * e[:, None, 1] + d[..., 2] * e[:, None, 2]
+
+    x, y, z = dot(e1), dot(e2), dot(nrm)
+    length2 = d[..., 0] ** 2 + d[..., 1] ** 2 + d[..., 2] ** 2
     vertical = x * x + y * y <= (_VERTICAL**2) * length2
     sector = jnp.clip(jnp.floor(_diamond(x, y) * (sectors / 4)), 0, sectors - 1).astype(jnp.uint8)
     zero = length2 == 0
@@ -119,11 +121,20 @@ def _face_group_bits(o, normals, keep_all, vertices, faces, group_masks, *, sect
     x = e1 @ vertices.T - jnp.sum(o * e1, -1)[:, None]
     y = e2 @ vertices.T - jnp.sum(o * e2, -1)[:, None]
     h = nrm @ vertices.T - jnp.sum(o * nrm, -1)[:, None]
-    ang = _diamond(x, y)
-    vertical = x * x + y * y <= (_VERTICAL**2) * (x * x + y * y + h * h)
     scale = jnp.max(jnp.abs(vertices)) + jnp.max(jnp.abs(o))
-    fc = [faces[:, i] for i in range(3)]
-    a0, a1, a2 = (ang[:, i] for i in fc)
+    vertical = x * x + y * y <= (_VERTICAL**2) * (x * x + y * y + h * h)
+    up = h > -_HEIGHT_MARGIN * scale
+    # one gathered number per corner: its pseudo-angle (in [0, 4], 4 by rounding) + 8 if above the
+    # plane, or −8 (+1 if above) if near the normal's axis (the + 8 costs three bits of the angle,
+    # far under the margin)
+    up_f = up.astype(x.dtype)
+    packed = jnp.where(vertical, -8.0 + up_f, _diamond(x, y) + 8.0 * up_f)
+    p0, p1, p2 = (packed[:, f] for f in (faces[:, 0], faces[:, 1], faces[:, 2]))
+    vert = [p < -1.0 for p in (p0, p1, p2)]
+    ups = [jnp.where(v, p > -7.5, p >= 6.0) for v, p in zip(vert, (p0, p1, p2), strict=True)]
+    a0, a1, a2 = (
+        jnp.where(v, 0.0, p - jnp.where(u, 8.0, 0.0)) for v, u, p in zip(vert, ups, (p0, p1, p2), strict=True)
+    )
 
     def wrap(t):  # to [−2, 2)
         return t - 4.0 * jnp.floor((t + 2.0) / 4.0)
@@ -131,7 +142,7 @@ def _face_group_bits(o, normals, keep_all, vertices, faces, group_masks, *, sect
     d1, d2 = wrap(a1 - a0), wrap(a2 - a0)
     lo = jnp.minimum(0.0, jnp.minimum(d1, d2))
     hi = jnp.maximum(0.0, jnp.maximum(d1, d2))
-    wide = (hi - lo >= 2.0 - 4 * _ARC_MARGIN) | vertical[:, fc[0]] | vertical[:, fc[1]] | vertical[:, fc[2]]
+    wide = (hi - lo >= 2.0 - 4 * _ARC_MARGIN) | vert[0] | vert[1] | vert[2]
     s_lo = jnp.floor((a0 + lo - _ARC_MARGIN) * (sectors / 4)).astype(jnp.int32)
     s_hi = jnp.floor((a0 + hi + _ARC_MARGIN) * (sectors / 4)).astype(jnp.int32)
     span = s_hi - s_lo + 1
@@ -140,7 +151,7 @@ def _face_group_bits(o, normals, keep_all, vertices, faces, group_masks, *, sect
     r = jnp.mod(s_lo, sectors)
     rot = ((run << r) | (run >> (sectors - r))) & every
     mask = jnp.where(wide | (span >= sectors), every, rot)  # (n, F) sectors
-    above = jnp.maximum(jnp.maximum(h[:, fc[0]], h[:, fc[1]]), h[:, fc[2]]) > -_HEIGHT_MARGIN * scale
+    above = ups[0] | ups[1] | ups[2]
     mask = jnp.where(above | keep_all[:, None], mask, 0)
     # sectors -> groups: a table per origin of the groups each sector mask reaches
     gm = group_masks.astype(jnp.int32)  # (n, G)
@@ -169,6 +180,9 @@ def _grouped_kernel(
     o_r = o[rc // g]  # (runs, R, 3)
     d_r = jnp.where(ok[..., None, None], d_g[rc], 0.0)  # (runs, R, K', 3)
     table = _fan_table(vertices, faces, t_min)  # (F, rows)
+    # the edge orientations and validity (columns 9 … 12, each 0 or 1) packed in one column
+    flags = table[:, 9] + 2 * table[:, 10] + 4 * table[:, 11] + 8 * table[:, 12]
+    table = jnp.concatenate([table[:, :9], flags[:, None], table[:, 13:]], 1)
     table = jnp.concatenate([table, jnp.zeros((1, table.shape[1]), table.dtype)])  # row F: no face
     none = table.shape[0] - 1
     last = flat.shape[0] - 1
@@ -181,7 +195,12 @@ def _grouped_kernel(
         def body(s, hit):
             i = s * c + j[None, :]  # (1, C)
             ids = jnp.where(i < cn[:, None], flat[jnp.minimum(st[:, None] + i, last)], none)  # (R, C)
-            return fold(hit, jnp.moveaxis(table[ids], -1, 0))[0]  # face rows (rows, R, C)
+            t = table[ids]  # (R, C, packed rows)
+            bits = t[..., 9].astype(jnp.int32)
+            unpacked = [(bits >> b) & 1 for b in range(4)]
+            return fold(
+                hit, [t[..., r] for r in range(9)] + unpacked + [t[..., r] for r in range(10, t.shape[-1])]
+            )[0]
 
         hit = lax.fori_loop(0, n_steps, body, jnp.zeros(d_u.shape[:-1], bool))
         return hit & jnp.any(d_u != 0, axis=-1)
