@@ -255,10 +255,11 @@ def _face_lists(o, nrm, keep_all, vertices, faces, group_masks, sectors):
     row's start and count (n, G): made a block of origins at a time."""
     n, g = group_masks.shape
     block = max(1, HEMISPHERE_BLOCK_PAIRS // faces.shape[0])
-    parts, counts = [], np.zeros((n, g), np.int64)
-    for b0 in range(0, n, block):
-        b1 = min(b0 + block, n)
-        bits = _face_group_bits(
+    blocks = [(b0, min(b0 + block, n)) for b0 in range(0, n, block)]
+    # every block dispatched first (asynchronously): the device works on the next while the host
+    # splits one
+    bits_of = [
+        _face_group_bits(
             o[b0:b1],
             nrm[b0:b1],
             jnp.asarray(keep_all[b0:b1]),
@@ -267,14 +268,19 @@ def _face_lists(o, nrm, keep_all, vertices, faces, group_masks, sectors):
             jnp.asarray(group_masks[b0:b1]),
             sectors=sectors,
         )
+        for b0, b1 in blocks
+    ]
+    parts, counts = [], np.zeros((n, g), np.int64)
+    for (b0, b1), bits in zip(blocks, bits_of, strict=True):
         bits = np.asarray(bits)
         nz = np.flatnonzero(bits)  # row-major: each origin's faces in order
         val = bits.reshape(-1)[nz]
+        ri = (nz // bits.shape[1]).astype(np.int32)
+        ci = (nz - ri * bits.shape[1]).astype(np.int32)
         for j in range(g):
-            pick = nz[(val & np.uint8(1 << j)) != 0]
-            ri = pick // bits.shape[1]
-            counts[b0:b1, j] = np.bincount(ri, minlength=b1 - b0)
-            parts.append((b0, b1, j, (pick - ri * bits.shape[1]).astype(np.int32)))
+            pick = (val & np.uint8(1 << j)) != 0
+            counts[b0:b1, j] = np.bincount(ri[pick], minlength=b1 - b0)
+            parts.append((b0, b1, j, ci[pick]))
     start = np.zeros((n, g), np.int64)
     flat = np.zeros(_bucket(max(int(counts.sum()), 1)), np.int32)
     offset = 0
