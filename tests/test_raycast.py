@@ -282,7 +282,8 @@ def test_hemisphere_fans_cull_by_height_and_sector_and_agree_bit_for_bit(bunny, 
     """:func:`hemisphere_fan_any_hit` on the own-vertex fans of a mesh (each vertex lifted along
     its normal, directions over the normal's hemisphere, as ``self_visibility = "rays"`` casts
     them) gives :func:`ray_fan_any_hit`'s hits exactly, with ``t_min`` and without, with the lists
-    made in one block or in blocks of one origin, while listing under a fifth of the whole mesh's
+    made in one block or in blocks of one origin, the fans' directions sorted once for all (a grid
+    whose every cell keeps to one sector) or fan by fan, while listing under a fifth of the whole mesh's
     (ray, face) pairs; fans with lamps below their plane zeroed, and random fans reaching below
     their plane about random normals (the azimuth alone culls) agree too; a convex mesh, every face
     below every vertex's plane, lists nothing and has no hits; traced inputs and bad shapes are
@@ -299,8 +300,12 @@ def test_hemisphere_fans_cull_by_height_and_sector_and_agree_bit_for_bit(bunny, 
         return real_kernel(*args, face_chunk=face_chunk, groups=groups)
 
     monkeypatch.setattr(hemisphere, "_grouped_kernel", counting)
-    for offset in (lift, None):
-        o, nrm, d, _ = _hemisphere_fans(v32, f, (6, 12), offset)
+    # (4, 24): every fan's directions in the same sectors (sorted once); (6, 12): cells centred on
+    # the sectors' edges, sorted fan by fan
+    for grid, offset, shared in (((4, 24), None, True), ((6, 12), lift, False), ((6, 12), None, False)):
+        o, nrm, d, _ = _hemisphere_fans(v32, f, grid, offset)
+        keys = np.asarray(hemisphere._direction_keys(d, nrm, hemisphere.HEMISPHERE_SECTORS)[0])
+        assert np.all(keys == keys[:1]) == shared
         want = np.asarray(ray_fan_any_hit(o, d, v32, f, t_min=offset))
         got = np.asarray(hemisphere_fan_any_hit(o, d, v32, f, nrm, t_min=offset))
         assert 0.02 < want.mean() < 0.9

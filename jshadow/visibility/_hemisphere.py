@@ -241,19 +241,26 @@ def _bucket(n: int) -> int:
 def _sector_groups(d, nrm, sectors):
     """The fans' directions sorted by sector on the host and cut into G groups of K': the order
     ``perm`` (n, G·K', K for padding) and its inverse ``inv`` (n, K), the groups' sector masks
-    (n, G) and whether each fan lies strictly above its plane (n,)."""
+    (n, G) and whether each fan lies strictly above its plane (n,). Fans whose keys all agree
+    (each vertex's hemisphere grid in its own frame) are sorted once."""
     n, k = d.shape[:2]
     keys, strict = (np.asarray(x) for x in _direction_keys(d, nrm, sectors))
-    perm = np.argsort(keys, axis=1, kind="stable").astype(np.int32)  # radix sort of bytes
+    shared = bool(np.all(keys == keys[:1]))
+    rows = keys[:1] if shared else keys
+    perm = np.argsort(rows, axis=1, kind="stable").astype(np.int32)  # radix sort of bytes
     kg = -(-k // sectors)
     g = -(-k // kg)
     pad = g * kg - k
-    keys_s = np.take_along_axis(keys, perm, 1)
-    keys_s = np.concatenate([keys_s, np.full((n, pad), sectors + 1, keys.dtype)], 1).reshape(n, g, kg)
+    m = rows.shape[0]
+    keys_s = np.take_along_axis(rows, perm, 1)
+    keys_s = np.concatenate([keys_s, np.full((m, pad), sectors + 1, keys.dtype)], 1).reshape(m, g, kg)
     inv = np.empty_like(perm)
     np.put_along_axis(inv, perm, np.arange(k, dtype=np.int32)[None], 1)
-    perm = np.concatenate([perm, np.full((n, pad), k, np.int32)], 1)
-    return perm, inv, _group_masks(keys_s, sectors), strict
+    perm = np.concatenate([perm, np.full((m, pad), k, np.int32)], 1)
+    out = perm, inv, _group_masks(keys_s, sectors)
+    if shared:
+        out = tuple(np.broadcast_to(x, (n, *x.shape[1:])) for x in out)
+    return (*out, strict)
 
 
 def _face_lists(o, nrm, keep_all, vertices, faces, group_masks, sectors):
