@@ -72,9 +72,10 @@ def _frame(normals):
 
 
 def _diamond(x, y):
-    """Pseudo-angle of (x, y) in [0, 4): increasing with atan2(y, x) mod 2π, a quarter turn per
-    unit, and D(−x, −y) = D(x, y) + 2 (mod 4), so a half turn is 2; (0, 0) gives 0. No
-    transcendental functions."""
+    """Pseudo-angle of (x, y) in [0, 4] (4 only by rounding, the same direction as 0): increasing
+    with atan2(y, x) mod 2π, a quarter turn per unit, never faster than the angle in radians, and
+    D(−x, −y) = D(x, y) + 2 (mod 4), so a half turn is 2; (0, 0) gives 0. No transcendental
+    functions."""
     s = jnp.abs(x) + jnp.abs(y)
     t = jnp.where(s > 0, y / jnp.where(s > 0, s, 1.0), 0.0)
     return jnp.where(x >= 0, jnp.where(y >= 0, t, 4.0 + t), 2.0 - t)
@@ -364,8 +365,12 @@ def hemisphere_fan_any_hit(
     :data:`HEMISPHERE_RUN_ROWS` rows sorted by length with a traced trip count. The lists' buffer
     and the number of runs are bucketed, so a mesh's poses share a few compilations.
 
-    Memory: the lists are made for blocks of origins of at most :data:`HEMISPHERE_BLOCK_PAIRS`
-    (origin, face) pairs, whatever the mesh size.
+    Memory: the face bits are made for blocks of origins of at most
+    :data:`HEMISPHERE_BLOCK_PAIRS` (origin, face) pairs, whatever the mesh size. The lists hold one
+    4-byte entry per (origin, group, face) kept: about 820 per bunny vertex for its hemisphere
+    fans, but up to G·F per origin for fans that reach below their planes from inside a mesh (every
+    face kept in every group), where :func:`jshadow.visibility.ray_fan_any_hit`, bounded for any
+    mesh, is the better call.
 
     Limitations: concrete inputs only (the lists' lengths are data), no derivative (boolean).
 
@@ -398,6 +403,8 @@ def hemisphere_fan_any_hit(
         if t_min.shape != ():
             raise ValueError(f"t_min must be a scalar, got shape {t_min.shape}")
     s, c = HEMISPHERE_SECTORS, DEFAULT_FAN_FACE_CHUNK
+    if not 1 <= s <= 8:
+        raise ValueError(f"HEMISPHERE_SECTORS must be 1 to 8 (a bit each in a byte), got {s}")
     perm, inv, group_masks, strict = _sector_groups(d, nrm, s)
     f_np = np.asarray(faces)
     faces_z = jnp.asarray(f_np[_morton_order(np.asarray(vertices)[f_np].mean(1))])
