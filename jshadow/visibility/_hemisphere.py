@@ -23,9 +23,10 @@ so the hits are those of the whole-mesh fan bit for bit (tests: the bunny's fans
 fans, random triangle soups with corner and axis cases).
 
 Cost. Each (origin, group, face) listed costs about 50 ns (gathering the face and setting up its
-edge planes) and each (ray, face) test about 0.4 ns, so a few wide groups beat many narrow ones;
-eight sectors gave the bunny's 12 × 48 cast 0.19 s, against 0.45 s for the height alone and 1.0 s
-for every face (BENCHMARKS.md "Own-vertex rays by azimuth sector").
+edge planes) and each (ray, face) test about 0.4 ns (`/tmp` probes of the kernel alone), so a few
+wide groups beat many narrow ones; eight sectors gave the bunny's 12 × 48 cast 0.17 s, against
+0.45 s for the height alone and 1.02 s for every face (``benchmarks/bench_own_rays.py``;
+BENCHMARKS.md "Own-vertex rays by azimuth sector").
 """
 
 from __future__ import annotations
@@ -354,8 +355,8 @@ def hemisphere_fan_any_hit(
 
     The own-vertex casts are such fans: each vertex's hemisphere of directions about its normal,
     from the vertex lifted along it (:func:`jshadow.visibility.vertex_visibility_sh`). The bunny's
-    12 × 48 transfer cast took 0.19 s against 1.06 s with every face, and its 256 lamp rays 0.17
-    against 0.59 s (``benchmarks/bench_own_rays.py``; BENCHMARKS.md "Own-vertex rays by azimuth
+    12 × 48 transfer cast took 0.17 s against 1.02 s with every face, and its 256 lamp rays 0.16
+    against 0.58 s (``benchmarks/bench_own_rays.py``; BENCHMARKS.md "Own-vertex rays by azimuth
     sector").
 
     How: the directions are sorted by sector about their origin's normal (on the host) and cut into
