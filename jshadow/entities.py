@@ -122,7 +122,8 @@ class Method:
     (:mod:`jshadow.visibility._own_maps`: the transfer over a ``self_maps_grid`` sphere grid, 8 × 16
     by default, looked up in ``self_maps_resolution``² pixels, 64; the lamps at ``lamp_images``
     pixels, 128 if 0), for a mesh that deforms: the animated bunny's vertices under the studio map
-    1.26 % relative RMSE with "rays" (1.4 s per frame), 1.40 % with "maps" (0.12–0.15 s with the
+    1.26 % relative RMSE with "rays" (1.4 s per frame when every face was tested, 0.35 s cast by
+    sector, BENCHMARKS.md "Deforming meshes' own vertices by rays"), 1.40 % with "maps" (0.12–0.15 s with the
     lamp images; 1.24 % with the scene's ambiguous lamp pairs settled, 0.88 % with the map split at
     2 × its mean, the sixth run of BENCHMARKS.md "The default against the paper"), the bunny's
     under a sky 0.34 against 1.77 % (8 × 16 at 64²; BENCHMARKS.md "Self-shadowing by depth

@@ -107,7 +107,7 @@ def _check_flat_call(rend, config_file, res):
     scene = rend.scene
     t = jnp.asarray(frame_time(1, scene.n_frames), scene.receivers.points.dtype)
     bsvs = rend._bsvs(t)
-    own = rend._own(t)  # the bending egg's own vertices: "maps" (self_visibility "auto")
+    own = rend._own(t)  # the bending egg's own vertices: "rays" every frame (self_visibility "auto")
     images = rend._images(t)  # the sphere light is shadowed through the images (light_visibility "auto")
     assert images is not None and own is not None
     ref = runner._with_receivers(

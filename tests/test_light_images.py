@@ -214,13 +214,15 @@ def test_config_keys_are_read_and_checked():
     assert math.isclose(Method().light_cap[0] * Method().light_cap[1], 32)
 
 
-def test_light_visibility_auto_takes_the_images_where_they_apply(tmp_path):
+def test_light_visibility_auto_takes_the_images_where_they_apply(tmp_path, monkeypatch):
     """``light_visibility = "auto"`` and ``environment_lights = "auto"`` (the config defaults):
     the images for a sphere light, or a lat-long map over closed meshes (256 distant lights for the
     map over meshes that keep their shape, 64 over the small egg bent); the n-band path with a fit,
     the paper's preset or shell, the brute-force BSV, an open mesh, sphere occluders only, or
     nothing sharp to shadow; explicit choices are kept. ``self_visibility = "auto"``: "rays" for the
-    own vertices of meshes that keep their shape, else "field"."""
+    own vertices of meshes that keep their shape, and of closed deforming meshes within
+    ``AUTO_SELF_RAYS_PAIRS`` where no lamps are split off, "maps" for other closed deforming
+    meshes, else "field"."""
     from pathlib import Path
 
     from jshadow.config import (
@@ -229,8 +231,11 @@ def test_light_visibility_auto_takes_the_images_where_they_apply(tmp_path):
         AUTO_ENVIRONMENT_LIGHTS_STATIC,
         AUTO_MAPS_GRID,
         AUTO_PENUMBRA_PAIRS,
+        AUTO_SELF_RAYS_PAIRS,
         build_scene,
+        own_ray_pairs,
     )
+    from jshadow.config import _build as config_build
 
     hdr = str(Path(__file__).resolve().parents[1] / "assets" / "envmaps" / "studio_small_03_512x256.hdr")
     (tmp_path / "open.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 2\nf 1 3 2\nf 1 2 4\nf 1 4 3\n")
@@ -269,14 +274,31 @@ def test_light_visibility_auto_takes_the_images_where_they_apply(tmp_path):
         "images",
         K,
     )
-    # a closed mesh that deforms: both from depth images and local rays, made every frame
+    # a closed mesh that deforms: both from depth images and local rays, made every frame, unless
+    # the environment reaches its vertices through their transfer alone (no lamps) and the mesh is
+    # small enough to cast by rays every frame (this egg: 42 vertices x 80 faces)
     bent = [{**egg, "deform": {"type": "bend", "amount": [0.0, 0.5]}}]
-    assert chosen({**base, "occluder": bent, "receiver": own}, "maps") == ("images", 0)
+    big = [{**bent[0], "subdivisions": 5}]  # 10242 x 20480 pairs: over the bound
+    assert (
+        own_ray_pairs(build_scene(config_from_dict({**base, "occluder": bent}, root=tmp_path)).occluders)
+        == 42 * 80
+    )
+    assert own_ray_pairs(
+        build_scene(config_from_dict({**base, "occluder": big}, root=tmp_path)).occluders
+    ) > (AUTO_SELF_RAYS_PAIRS)
+    assert chosen({**base, "occluder": bent, "receiver": own}, "rays") == ("images", 0)
+    assert chosen({**base, "occluder": big, "receiver": own}, "maps") == ("images", 0)
     assert chosen({**base, "occluder": bent, "receiver": own, "environment": studio}, "maps") == (
         "images",
         KD,
     )
-    assert chosen({**base, "occluder": bent, "receiver": own, "light": []}, "maps") == ("sh", 0)
+    assert chosen({**base, "occluder": bent, "receiver": own, "light": []}, "rays") == ("sh", 0)
+    assert chosen({**base, "occluder": big, "receiver": own, "light": []}, "maps") == ("sh", 0)
+    no_env = {k: v for k, v in base.items() if k != "environment"}
+    assert chosen({**no_env, "occluder": bent, "receiver": own}, "maps") == ("images", 0)
+    with monkeypatch.context() as mp:  # the bound decides
+        mp.setattr(config_build, "AUTO_SELF_RAYS_PAIRS", 42 * 80 - 1)
+        assert chosen({**base, "occluder": bent, "receiver": own}, "maps") == ("images", 0)
 
     def maps(d):
         m = build_scene(config_from_dict(d, root=tmp_path)).method
@@ -285,13 +307,13 @@ def test_light_visibility_auto_takes_the_images_where_they_apply(tmp_path):
     # "maps" with the environment through the transfer alone: the finer grid, at the pixels of the
     # mesh's edges (this coarse egg: the floor); lamps carry a map's bright part, or there is no
     # environment: the coarse grid; explicit keys kept, and checked
-    fine, coarse = (AUTO_MAPS_GRID, 64), ((8, 16), 64)
-    assert maps({**base, "occluder": bent, "receiver": own, "light": []}) == fine
-    assert maps({**base, "occluder": bent, "receiver": own}) == fine
+    fine, coarse = (AUTO_MAPS_GRID, 160), ((8, 16), 64)  # the finely tessellated egg: the ceiling
+    assert maps({**base, "occluder": big, "receiver": own, "light": []}) == fine
+    assert maps({**base, "occluder": big, "receiver": own}) == fine
     assert maps({**base, "occluder": bent, "receiver": own, "environment": studio}) == coarse
-    no_env = {k: v for k, v in base.items() if k != "environment"}
     assert maps({**no_env, "occluder": bent, "receiver": own}) == coarse
     assert maps({**base, "receiver": own}) == coarse  # "rays": the keys do not apply
+    assert maps({**base, "occluder": bent, "receiver": own}) == coarse
     given = {"self_maps_grid": [6, 10], "self_maps_resolution": 48}
     assert maps({**base, "occluder": bent, "receiver": own, "method": given}) == ((6, 10), 48)
     with pytest.raises(ConfigError, match="self_maps_resolution"):

@@ -14,11 +14,13 @@ from ._build import AUTO_ENVIRONMENT_LIGHTS_STATIC as AUTO_ENVIRONMENT_LIGHTS_ST
 from ._build import AUTO_LAMP_TESTS_PER_FACE as AUTO_LAMP_TESTS_PER_FACE
 from ._build import AUTO_MAPS_GRID as AUTO_MAPS_GRID
 from ._build import AUTO_PENUMBRA_PAIRS as AUTO_PENUMBRA_PAIRS
+from ._build import AUTO_SELF_RAYS_PAIRS as AUTO_SELF_RAYS_PAIRS
 from ._build import auto_light_path as auto_light_path
 from ._build import build_scene as build_scene
 from ._build import clear_file_cache as clear_file_cache
 from ._build import lamp_tests_per_face as lamp_tests_per_face
 from ._build import maps_resolution as maps_resolution
+from ._build import own_ray_pairs as own_ray_pairs
 from ._build import plane_receivers as plane_receivers
 from ._build import rotate_latlong_y as rotate_latlong_y
 from ._errors import ConfigError as ConfigError

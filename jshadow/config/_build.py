@@ -275,6 +275,14 @@ AUTO_LAMP_IMAGES = 128
 # fifth runs). 3.0 pixels per median edge, within 64-160: the cow 160, the bunny 96 (at 2.8 the
 # cow took 128; both meshes were used to choose it)
 AUTO_MAPS_GRID = (12, 24)
+# ... unless the deforming meshes' own vertices are cheap enough to cast by rays every frame: at most
+# this many (vertex, face) pairs summed over them (each vertex's 12 x 48 hemisphere against the faces
+# above its plane within its sectors, jshadow.visibility.hemisphere_fan_any_hit: the bunny's 1901 x
+# 3798 = 7.2e6 in 0.17 s, the spot cow's 2930 x 5856 = 1.7e7 in 0.34 s, benchmarks/bench_own_rays.py).
+# The bending bunny under a sky 0.89 -> 0.43 % relative RMSE, max 10.4 -> 4.8 %, at 1.2-1.4x the
+# paper's frame; the bending cow would take 1.7x (max 8.2 -> 4.4 %), so it keeps "maps"
+# (BENCHMARKS.md "Deforming meshes' own vertices by rays")
+AUTO_SELF_RAYS_PAIRS = 1.0e7
 # a deforming mesh's receivers next to it (contact_visibility) are cast every frame: "auto" casts them
 # where they take at most this many ray-triangle tests per frame at four times of the animation
 # (jshadow.scene.contact_ray_tests; about 0.2 s at the 5e9 tests per second measured here, the
@@ -290,6 +298,13 @@ AUTO_CONTACT_TESTS = 1.0e9
 AUTO_PENUMBRA_PAIRS = 2**18
 AUTO_MAPS_EDGE_PIXELS = 3.0
 AUTO_MAPS_RESOLUTION = (64, 160)  # the range of that resolution, in steps of 32
+
+
+def own_ray_pairs(meshes) -> float:
+    """(vertex, face) pairs of the deforming ``meshes``' own-vertex casts per frame: V·F summed over
+    those that do not keep their shape (:func:`jshadow.entities.shape_is_static`), what
+    :data:`AUTO_SELF_RAYS_PAIRS` bounds; the shapes of traced vertices count as well."""
+    return float(sum(o.unit_vertices.shape[0] * o.faces.shape[0] for o in meshes if not shape_is_static(o)))
 
 
 def maps_resolution(meshes) -> int:
@@ -353,13 +368,16 @@ def auto_light_path(
     the bunny's vertices under a sky 9.7 → 0.3 % relative RMSE, BENCHMARKS.md "The default
     against the paper, every scene in one run"); "maps" for closed meshes that deform: the same
     two quantities from depth images and rays against each vertex's nearby faces, made every
-    frame (about 5× cheaper than the cast and less accurate: the bunny's vertices under a sky
-    1.8 % against 0.3 %; :mod:`jshadow.visibility._own_maps`); else "field". With "maps", an
-    ``environment`` not split into lamps reaches the own vertices through their transfer alone,
-    which then takes :data:`AUTO_MAPS_GRID` directions in images of :func:`maps_resolution`
-    pixels (``self_maps_grid``, ``self_maps_resolution``; else 8 × 16 at 64: where lamps carry
-    the map's bright part the transfer carries its dim rest, the animated bunny's vertices 1.40 %
-    either way).
+    frame (cheaper than the cast and less accurate: the bunny's vertices under a sky 1.8 % against
+    0.3 %; :mod:`jshadow.visibility._own_maps`); else "field". Where an ``environment`` not split
+    into lamps reaches the own vertices through their transfer alone, deforming meshes whose casts
+    take at most :data:`AUTO_SELF_RAYS_PAIRS` (vertex, face) pairs a frame (:func:`own_ray_pairs`)
+    take "rays" instead, cast every frame (the bending bunny under a sky: max 10.4 → 4.8 %); with
+    "maps" there the transfer takes :data:`AUTO_MAPS_GRID` directions in images of
+    :func:`maps_resolution` pixels (``self_maps_grid``, ``self_maps_resolution``; else 8 × 16 at
+    64: where lamps carry the map's bright part the transfer carries its dim rest, the animated
+    bunny's vertices 1.40 % either way, and "rays" would add the lamp rays every frame, 2.4× the
+    paper's frame with the same max).
     Where every mesh keeps its shape, ``contact_visibility = "rays"``: the fixed receivers within
     :data:`jshadow.scene.CONTACT_REACH` of a mesh's bounding radius from its vertices (or its
     large faces) take its
@@ -400,9 +418,12 @@ def auto_light_path(
         if not static and lamp_tests_per_face(meshes, k, AUTO_LAMP_IMAGES) > AUTO_LAMP_TESTS_PER_FACE:
             k = AUTO_ENVIRONMENT_LIGHTS_DEFORMING
     images = applies and (has_lights or k)
+    through_transfer = environment and not (images and k)  # no lamps split off: the transfer carries it
+    if own == "maps" and through_transfer and own_ray_pairs(meshes) <= AUTO_SELF_RAYS_PAIRS:
+        own = "rays"
     contact = {"contact_visibility": "rays" if static else "field"}
     maps = {key: _N_BAND[key] for key in ("self_maps_grid", "self_maps_resolution")}
-    if own == "maps" and environment and not (images and k):
+    if own == "maps" and through_transfer:
         maps = {"self_maps_grid": AUTO_MAPS_GRID, "self_maps_resolution": maps_resolution(meshes)}
     if meshes and not static and receivers is not None:
         # a deforming mesh's contact rows are cast every frame: where they are affordable

@@ -120,7 +120,9 @@ class MethodConfig(eqx.Module):
     visibility at its own vertices with ``self_shadow``: extrapolated by the field, each vertex's
     transfer cast by rays, the field's with rays toward the environment lights, or "rays"'
     quantities from depth images and rays against nearby faces; "auto", the default: "rays" where
-    every mesh keeps its shape, else "maps" for closed meshes, else "field") and
+    every mesh keeps its shape, or where closed deforming meshes under an environment not split
+    into lamps are small enough to cast every frame, else "maps" for closed meshes, else "field",
+    :func:`jshadow.config.auto_light_path`) and
     ``self_visibility_grid`` (θ, φ) ray directions over each vertex's normal hemisphere for "rays",
     ``light_visibility`` "auto" | "sh" | "images" (how mesh occluders shadow sphere lights: the
     field's SH, or rays to the light looked up in the BSV's images; "auto", the default: "images"
