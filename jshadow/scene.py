@@ -793,7 +793,7 @@ def _lamp_rays(v, faces, directions, lift) -> Float[Array, "V K"]:
     shading weighs by zero (the cosine of :func:`environment_visible_fraction`). A concrete mesh
     tests each vertex's rays against only the faces above its plane within their azimuths
     (:func:`jshadow.visibility.hemisphere_fan_any_hit`: the same hits; the bunny's 256 lamps took
-    162 against 584 ms, ``benchmarks/bench_own_rays.py``); a traced one against every face."""
+    144 against 575 ms, ``benchmarks/bench_own_rays.py``); a traced one against every face."""
     normals = vertex_normals(v, faces)
     origins = v + jnp.asarray(lift, v.dtype) * normals
     up = normals @ directions.T > 0  # (V, K)

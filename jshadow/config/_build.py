@@ -278,9 +278,10 @@ AUTO_MAPS_GRID = (12, 24)
 # ... unless the deforming meshes' own vertices are cheap enough to cast by rays every frame: at most
 # this many (vertex, face) pairs summed over them (each vertex's 12 x 48 hemisphere against the faces
 # above its plane within its sectors, jshadow.visibility.hemisphere_fan_any_hit: the bunny's 1901 x
-# 3798 = 7.2e6 in 0.17 s, the spot cow's 2930 x 5856 = 1.7e7 in 0.34 s, benchmarks/bench_own_rays.py).
-# The bending bunny under a sky 0.89 -> 0.43 % relative RMSE, max 10.4 -> 4.8 %, at 1.2-1.4x the
-# paper's frame; the bending cow would take 1.7x (max 8.2 -> 4.4 %), so it keeps "maps"
+# 3798 = 7.2e6 in 0.15 s, the spot cow's 2930 x 5856 = 1.7e7 in 0.29 s, benchmarks/bench_own_rays.py).
+# The bending bunny under a sky 0.89 -> 0.43 % relative RMSE, max 10.4 -> 4.8 %, at 150-215 ms a
+# frame against the paper's 120-160 ms in earlier runs; the bending cow's frame 300-330 ms against
+# the paper's 176-236 ms (1.3-1.9x; max 8.2 -> 4.4 %, on a 10 x 40 grid too), so it keeps "maps"
 # (BENCHMARKS.md "Deforming meshes' own vertices by rays")
 AUTO_SELF_RAYS_PAIRS = 1.0e7
 # a deforming mesh's receivers next to it (contact_visibility) are cast every frame: "auto" casts them

@@ -14,19 +14,23 @@ Two facts make a (ray, face) test skippable, each exact for a ray ``o + t·d``, 
 
 :func:`hemisphere_fan_any_hit` sorts each origin's fan by azimuth sector about the normal, cuts it
 into groups, and tests each group against the faces that reach above the plane and into the
-group's sectors: lists built per (origin, group) on the host, then one compiled kernel loops over
-every list. The azimuths (measured by a pseudo-angle, :func:`_diamond`), the sectors and the
-heights are given margins (``_ARC_MARGIN``; a corner or direction within ``_VERTICAL`` of the
-normal's axis covers every sector) far wider than the rounding of the fan kernel's own tests
+group's sectors: lists built per (origin, group) (chunks of neighbouring faces whose bounding ball
+lies below the plane dropped first, then each remaining face measured on the device, the lists
+expanded on the host), then one compiled kernel loops over every list. The azimuths (measured by
+a pseudo-angle, :func:`_diamond`), the sectors and the heights are given margins
+(``_ARC_MARGIN``; a corner or direction within ``_VERTICAL`` of the normal's axis covers every
+sector) far wider than the rounding of the fan kernel's own tests
 (:func:`jshadow.visibility.ray_fan_any_hit`), whose per-face arithmetic is evaluated unchanged,
 so the hits are those of the whole-mesh fan bit for bit (tests: the bunny's fans, lamps and random
 fans, random triangle soups with corner and axis cases).
 
-Cost. Each (origin, group, face) listed costs about 50 ns (gathering the face and setting up its
-edge planes) and each (ray, face) test about 0.4 ns (`/tmp` probes of the kernel alone), so a few
-wide groups beat many narrow ones; eight sectors gave the bunny's 12 × 48 cast 0.17 s, against
-0.45 s for the height alone and 1.02 s for every face (``benchmarks/bench_own_rays.py``;
-BENCHMARKS.md "Own-vertex rays by azimuth sector").
+Cost. The kernel takes about 45 ns per (origin, group, face) listed with 72 rays a group (the
+spot cow's 3.5 M in about 160 ms, `/tmp` probe): gathering the face and setting up its edge planes,
+then about 0.4 ns per (ray, face) test, so a few wide groups beat many narrow ones (16 sectors:
+the bunny's cast 135 → 184 ms in a `/tmp` probe). Making the lists takes about a third of the whole: 45 of the
+bunny's ~140 ms. Eight sectors gave the bunny's 12 × 48 cast 0.15 s, against 0.45 s for the
+height alone and 1.04 s for every face (``benchmarks/bench_own_rays.py``; BENCHMARKS.md
+"Own-vertex rays by azimuth sector", "Chunked face lists").
 """
 
 from __future__ import annotations
@@ -54,6 +58,11 @@ HEMISPHERE_PIECE_MIN = 32
 # (origin, face) pairs one block of the lists measures at once: bounds their memory (a few tens of
 # bytes a pair) whatever the mesh size
 HEMISPHERE_BLOCK_PAIRS = 1 << 20
+# neighbouring faces (in the Z-order) culled together by their bounding ball before each face is
+# measured: one bit each in a uint16, so 16 (fixed: _face_lists unpacks two bytes a chunk). The
+# bunny keeps 34 % of its (vertex, chunk) pairs, against 19 % of its (vertex, face) pairs above
+# the planes; measuring the faces took 14 against 37 ms (`/tmp` probe)
+HEMISPHERE_CHUNK_FACES = 16
 # pseudo-angle (a quarter turn is 1; see _diamond) added to each face's arc; a corner or direction
 # whose horizontal part is under _VERTICAL of its length has an ill-conditioned azimuth and covers
 # every sector
@@ -116,33 +125,40 @@ def _group_masks(keys_sorted, sectors):
     return np.where(empty, 0, np.where(full, every, mask)).astype(np.uint8)
 
 
-@partial(jax.jit, static_argnames=("sectors",))
-def _face_group_bits(o, normals, keep_all, vertices, faces, group_masks, *, sectors):
-    """(n, F) uint8: bit g set where ray group g of origin i may meet face f.
+@jax.jit
+def _chunk_keep(o, normals, keep_all, centers, radii, scale):
+    """(n, NC) bool: chunk c may hold a face reaching above origin i's plane (its bounding ball
+    does, by twice the height margin), or origin i ``keep_all``."""
+    nrm, _, _ = _frame(normals)
+    h = nrm @ centers.T - jnp.sum(o * nrm, -1)[:, None]
+    return (h + radii[None, :] > -2.0 * _HEIGHT_MARGIN * scale) | keep_all[:, None]
 
-    Face f counts for origin i where a corner lies above i's plane (or everywhere for an origin
-    that ``keep_all``). It reaches the sectors its arc of azimuths at the origin crosses, widened
-    by margins, or every sector where the arc is a half turn or more (the projected face holds the
-    origin) or a corner lies near the normal's axis."""
+
+@partial(jax.jit, static_argnames=("sectors",))
+def _chunk_sectors(o, normals, keep_all, vi, ci, corners, valid, scale, *, sectors):
+    """(P, L) uint8 sector masks of the L faces of chunk ``ci[p]`` at origin ``vi[p]``: the
+    sectors the face's arc of azimuths crosses, widened by margins, or every sector where the arc
+    is a half turn or more (the projected face holds the origin) or a corner lies near the normal's
+    axis; none where every corner lies below the plane (unless the origin ``keep_all``) or the
+    lane holds no face. ``corners`` (NC + 1, 9, L): corner k's component i at row 3k + i."""
     nrm, e1, e2 = _frame(normals)
-    # per (origin, vertex), then gathered per face corner: (n, F) columns
-    x = e1 @ vertices.T - jnp.sum(o * e1, -1)[:, None]
-    y = e2 @ vertices.T - jnp.sum(o * e2, -1)[:, None]
-    h = nrm @ vertices.T - jnp.sum(o * nrm, -1)[:, None]
-    scale = jnp.max(jnp.abs(vertices)) + jnp.max(jnp.abs(o))
-    vertical = x * x + y * y <= (_VERTICAL**2) * (x * x + y * y + h * h)
-    up = h > -_HEIGHT_MARGIN * scale
-    # one gathered number per corner: its pseudo-angle (in [0, 4], 4 by rounding) + 8 if above the
-    # plane, or −8 (+1 if above) if near the normal's axis (the + 8 costs three bits of the angle,
-    # far under the margin)
-    up_f = up.astype(x.dtype)
-    packed = jnp.where(vertical, -8.0 + up_f, _diamond(x, y) + 8.0 * up_f)
-    p0, p1, p2 = (packed[:, f] for f in (faces[:, 0], faces[:, 1], faces[:, 2]))
-    vert = [p < -1.0 for p in (p0, p1, p2)]
-    ups = [jnp.where(v, p > -7.5, p >= 6.0) for v, p in zip(vert, (p0, p1, p2), strict=True)]
-    a0, a1, a2 = (
-        jnp.where(v, 0.0, p - jnp.where(u, 8.0, 0.0)) for v, u, p in zip(vert, ups, (p0, p1, p2), strict=True)
+    oc = o[vi]  # (P, 3)
+    fr = jnp.concatenate([e1, e2, nrm], -1)[vi]  # (P, 9)
+    cc = corners[ci]  # (P, 9, L)
+    xs, ys, hs = [], [], []
+    for k in range(3):
+        rel = [cc[:, 3 * k + i, :] - oc[:, i, None] for i in range(3)]
+        for out, b in ((xs, 0), (ys, 3), (hs, 6)):
+            out.append(rel[0] * fr[:, b, None] + rel[1] * fr[:, b + 1, None] + rel[2] * fr[:, b + 2, None])
+    vert = [
+        x * x + y * y <= (_VERTICAL**2) * (x * x + y * y + h * h) for x, y, h in zip(xs, ys, hs, strict=True)
+    ]
+    above = (
+        (hs[0] > -_HEIGHT_MARGIN * scale)
+        | (hs[1] > -_HEIGHT_MARGIN * scale)
+        | (hs[2] > -_HEIGHT_MARGIN * scale)
     )
+    a0, a1, a2 = (jnp.where(v, 0.0, _diamond(x, y)) for v, x, y in zip(vert, xs, ys, strict=True))
 
     def wrap(t):  # to [−2, 2)
         return t - 4.0 * jnp.floor((t + 2.0) / 4.0)
@@ -158,15 +174,22 @@ def _face_group_bits(o, normals, keep_all, vertices, faces, group_masks, *, sect
     run = (jnp.int32(1) << jnp.clip(span, 0, sectors - 1)) - 1
     r = jnp.mod(s_lo, sectors)
     rot = ((run << r) | (run >> (sectors - r))) & every
-    mask = jnp.where(wide | (span >= sectors), every, rot)  # (n, F) sectors
-    above = ups[0] | ups[1] | ups[2]
-    mask = jnp.where(above | keep_all[:, None], mask, 0)
-    # sectors -> groups: a table per origin of the groups each sector mask reaches
-    gm = group_masks.astype(jnp.int32)  # (n, G)
-    m = jnp.arange(1 << sectors, dtype=jnp.int32)
-    reach = (m[None, :, None] & gm[:, None, :]) != 0  # (n, 2^S, G)
-    lut = jnp.sum(jnp.where(reach, 1 << jnp.arange(gm.shape[1]), 0), -1)  # (n, 2^S)
-    return jnp.take_along_axis(lut, mask, axis=1).astype(jnp.uint8)  # (n, F)
+    mask = jnp.where(wide | (span >= sectors), every, rot)
+    mask = jnp.where((above | keep_all[vi][:, None]) & valid[ci], mask, 0)
+    return mask.astype(jnp.uint8)
+
+
+@partial(jax.jit, static_argnames=("n",))
+def _group_lanes(mask, group_masks, vi, *, n):
+    """(P, G) uint16: bit l set where face l of pair p's chunk reaches ray group g (its sectors
+    meet the group's), and (n, G) int32 counts of them per origin. A jit of its own: fused with
+    :func:`_chunk_sectors`, XLA recomputes the sector masks for every consumer."""
+    g = group_masks[vi].astype(jnp.int32)  # (P, G)
+    m = mask.T.astype(jnp.int32)  # (L, P)
+    reach = ((m[None] & g.T[:, None, :]) != 0).astype(jnp.int32)  # (G, L, P)
+    lanes = jnp.sum(jnp.left_shift(reach, jnp.arange(m.shape[0], dtype=jnp.int32)[None, :, None]), 1)
+    counts = jax.ops.segment_sum(jnp.sum(reach, 1).T, vi, num_segments=n)  # padding: an empty chunk
+    return lanes.T.astype(jnp.uint16), counts
 
 
 @partial(jax.jit, static_argnames=("face_chunk", "groups"))
@@ -265,45 +288,82 @@ def _sector_groups(d, nrm, sectors):
     return (*out, strict)
 
 
+def _chunks(vertices, faces):
+    """The faces (in their Z-order) in chunks of L = :data:`HEMISPHERE_CHUNK_FACES`: corners
+    (NC + 1, 9, L), valid lanes (NC + 1, L) (the last chunk empty, for padding) and each chunk's
+    bounding ball (NC, 3) and (NC,)."""
+    lanes = HEMISPHERE_CHUNK_FACES
+    tri = np.asarray(vertices)[np.asarray(faces)]  # (F, 3, 3)
+    f = tri.shape[0]
+    nc = -(-f // lanes)
+    tri = np.concatenate([tri, np.zeros((nc * lanes - f + lanes, 3, 3), tri.dtype)])
+    corners = np.ascontiguousarray(tri.reshape(nc + 1, lanes, 9).transpose(0, 2, 1))
+    valid = (np.arange((nc + 1) * lanes) < f).reshape(nc + 1, lanes)
+    pts = tri[: nc * lanes].reshape(nc, lanes * 3, 3).astype(np.float64)
+    ok = np.repeat(valid[:nc], 3, axis=1)[..., None]
+    centers = 0.5 * (np.where(ok, pts, np.inf).min(1) + np.where(ok, pts, -np.inf).max(1))
+    radii = np.where(ok[..., 0], np.linalg.norm(pts - centers[:, None], axis=-1), 0.0).max(1)
+    # a relative margin over the rounding of the balls and of the heights measured against them
+    radii = radii * (1.0 + 1e-5) + 1e-6 * np.abs(pts).max(initial=0.0)
+    return corners, valid, centers.astype(tri.dtype), radii.astype(tri.dtype)
+
+
 def _face_lists(o, nrm, keep_all, vertices, faces, group_masks, sectors):
     """Every (origin, group) row's list of faces in one buffer (its length bucketed), with each
-    row's start and count (n, G): made a block of origins at a time."""
+    row's start and count (n·G,).
+
+    Made in two passes on the device and one on the host: chunks of
+    :data:`HEMISPHERE_CHUNK_FACES` neighbouring faces whose bounding ball lies below an origin's
+    plane are dropped for it (:func:`_chunk_keep`, a block of origins at a time); every kept
+    (origin, chunk) pair gets its faces' sector masks (:func:`_chunk_sectors`) and, per group, a
+    16-bit mask of the faces that reach it (:func:`_group_lanes`), in blocks of at most
+    :data:`HEMISPHERE_BLOCK_PAIRS` (origin, face) pairs, all dispatched before the host expands
+    any; the host turns each group's masks into face ids, each origin's in the faces' order."""
     n, g = group_masks.shape
-    block = max(1, HEMISPHERE_BLOCK_PAIRS // faces.shape[0])
-    blocks = [(b0, min(b0 + block, n)) for b0 in range(0, n, block)]
-    # every block dispatched first (asynchronously): the device works on the next while the host
-    # splits one
-    bits_of = [
-        _face_group_bits(
-            o[b0:b1],
-            nrm[b0:b1],
-            jnp.asarray(keep_all[b0:b1]),
-            vertices,
-            faces,
-            jnp.asarray(group_masks[b0:b1]),
-            sectors=sectors,
-        )
-        for b0, b1 in blocks
+    lanes = HEMISPHERE_CHUNK_FACES
+    corners, valid, centers, radii = _chunks(vertices, faces)
+    nc = centers.shape[0]
+    scale = jnp.max(jnp.abs(vertices)) + jnp.max(jnp.abs(o))
+    ka = jnp.asarray(keep_all)
+    per = max(1, HEMISPHERE_BLOCK_PAIRS // max(nc, 1))
+    keep = [
+        _chunk_keep(o[b0 : b0 + per], nrm[b0 : b0 + per], ka[b0 : b0 + per], centers, radii, scale)
+        for b0 in range(0, n, per)
     ]
-    parts, counts = [], np.zeros((n, g), np.int64)
-    for (b0, b1), bits in zip(blocks, bits_of, strict=True):
-        bits = np.asarray(bits)
-        nz = np.flatnonzero(bits)  # row-major: each origin's faces in order
-        val = bits.reshape(-1)[nz]
-        ri = (nz // bits.shape[1]).astype(np.int32)
-        ci = (nz - ri * bits.shape[1]).astype(np.int32)
-        for j in range(g):
-            pick = (val & np.uint8(1 << j)) != 0
-            counts[b0:b1, j] = np.bincount(ri[pick], minlength=b1 - b0)
-            parts.append((b0, b1, j, ci[pick]))
-    start = np.zeros((n, g), np.int64)
+    vi, ci = np.nonzero(np.concatenate([np.asarray(k) for k in keep]))  # origin-major
+    vi, ci = vi.astype(np.int32), ci.astype(np.int32)
+    block = max(1, HEMISPHERE_BLOCK_PAIRS // lanes)
+    cj, vj, gj = jnp.asarray(corners), jnp.asarray(valid), jnp.asarray(group_masks)
+    out = []
+    for b0 in range(0, vi.shape[0], block):
+        m = min(block, vi.shape[0] - b0)
+        size = _bucket(m)  # few compiled shapes; the padding points at the empty chunk
+        vb = np.zeros(size, np.int32)
+        cb = np.full(size, nc, np.int32)
+        vb[:m], cb[:m] = vi[b0 : b0 + m], ci[b0 : b0 + m]
+        vb = jnp.asarray(vb)
+        sec = _chunk_sectors(o, nrm, ka, vb, jnp.asarray(cb), cj, vj, scale, sectors=sectors)
+        out.append((m, *_group_lanes(sec, gj, vb, n=n)))
+    counts = np.zeros((n, g), np.int64)
+    parts = []
+    for m, lane_masks, cnt in out:
+        counts += np.asarray(cnt)
+        parts.append(np.asarray(lane_masks)[:m])
+    masks = np.concatenate(parts) if parts else np.zeros((0, g), np.uint16)
+    base = ci.astype(np.int32) * lanes  # the first face of each pair's chunk
     flat = np.zeros(_bucket(max(int(counts.sum()), 1)), np.int32)
+    start = np.zeros((n, g), np.int64)
     offset = 0
-    for b0, b1, j, faces_of in parts:
-        cnt = counts[b0:b1, j]
-        start[b0:b1, j] = offset + np.cumsum(cnt) - cnt
-        flat[offset : offset + faces_of.shape[0]] = faces_of
-        offset += faces_of.shape[0]
+    for j in range(g):
+        mj = masks[:, j]
+        nzp = np.flatnonzero(mj)
+        bits = np.unpackbits(mj[nzp].view(np.uint8).reshape(-1, 2), axis=1, bitorder="little")  # (·, 16)
+        e = np.flatnonzero(bits)  # pair-major, then face
+        ids = base[nzp[e >> 4]] | (e & 15).astype(np.int32)
+        cnt = counts[:, j]
+        start[:, j] = offset + np.cumsum(cnt) - cnt
+        flat[offset : offset + ids.shape[0]] = ids
+        offset += ids.shape[0]
     return flat, start.reshape(-1), counts.reshape(-1)
 
 
@@ -355,19 +415,21 @@ def hemisphere_fan_any_hit(
 
     The own-vertex casts are such fans: each vertex's hemisphere of directions about its normal,
     from the vertex lifted along it (:func:`jshadow.visibility.vertex_visibility_sh`). The bunny's
-    12 × 48 transfer cast took 0.17 s against 1.02 s with every face, and its 256 lamp rays 0.16
+    12 × 48 transfer cast took 0.15 s against 1.04 s with every face, and its 256 lamp rays 0.14
     against 0.58 s (``benchmarks/bench_own_rays.py``; BENCHMARKS.md "Own-vertex rays by azimuth
     sector").
 
     How: the directions are sorted by sector about their origin's normal (on the host) and cut into
     groups; each (origin, group) gets its list of faces (the faces in a Z-order, which keeps a
-    list's faces near in memory); one compiled kernel tests each row against its list,
+    list's faces near in memory; :func:`_face_lists`: chunks of
+    :data:`HEMISPHERE_CHUNK_FACES` faces whose bounding ball lies below the plane are dropped
+    before any face is measured); one compiled kernel tests each row against its list,
     :data:`jshadow.visibility._raycast.DEFAULT_FAN_FACE_CHUNK` faces a step, in runs of
     :data:`HEMISPHERE_RUN_ROWS` rows sorted by length with a traced trip count. The lists' buffer
     and the number of runs are bucketed, so a mesh's poses share a few compilations.
 
-    Memory: the face bits are made for blocks of origins of at most
-    :data:`HEMISPHERE_BLOCK_PAIRS` (origin, face) pairs, whatever the mesh size. The lists hold one
+    Memory: the faces are measured in blocks of at most :data:`HEMISPHERE_BLOCK_PAIRS`
+    (origin, face) pairs, whatever the mesh size. The lists hold one
     4-byte entry per (origin, group, face) kept: about 820 per bunny vertex for its hemisphere
     fans, but up to G·F per origin for fans that reach below their planes from inside a mesh (every
     face kept in every group), where :func:`jshadow.visibility.ray_fan_any_hit`, bounded for any
@@ -410,19 +472,19 @@ def hemisphere_fan_any_hit(
     f_np = np.asarray(faces)
     faces_z = jnp.asarray(f_np[_morton_order(np.asarray(vertices)[f_np].mean(1))])
     flat, start, count = _face_lists(o, nrm, ~strict, vertices, faces_z, group_masks, s)
-    row, st, cnt, steps = _runs(start, count, c)
+    row, st, cnt, steps = (jnp.asarray(x) for x in _runs(start, count, c))
     return _grouped_kernel(
         o,
         d,
         jnp.asarray(perm),
         jnp.asarray(inv),
-        jnp.asarray(row),
+        row,
         vertices,
         faces_z,
         jnp.asarray(flat),
-        jnp.asarray(st),
-        jnp.asarray(cnt),
-        jnp.asarray(steps),
+        st,
+        cnt,
+        steps,
         t_min,
         face_chunk=c,
         groups=group_masks.shape[1],

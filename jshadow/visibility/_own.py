@@ -9,7 +9,7 @@ mesh directly removes that error at the price of a ray cast per vertex: V × K �
 tests (the bunny: 1901 vertices × 576 directions over each vertex's normal hemisphere × 3798
 faces, about a second on two CPU cores), affordable once for a mesh whose shape does not change,
 not per frame. A concrete mesh's rays are tested against only the faces above each vertex's
-tangent plane within their sector of azimuth (0.17 s for the bunny; :mod:`._hemisphere`).
+tangent plane within their sector of azimuth (0.15 s for the bunny; :mod:`._hemisphere`).
 Projected as the vertex's shadowed transfer V·max(0, n·ω) from origins lifted as the reference's
 are (``transfer``, ``offset``: what ``self_visibility = "rays"`` casts), the bunny's vertices under
 the sky come to 0.34 % (9.68 % with the field; 1.26 % with V's SH from the vertex itself;
@@ -80,7 +80,7 @@ def vertex_visibility_sh(
     fan is cut into groups by azimuth about its normal, and each group is tested against only the
     faces that reach above the vertex's tangent plane and into the group's azimuths, the only ones
     its rays can meet (:func:`jshadow.visibility.hemisphere_fan_any_hit`; the same coefficients):
-    the bunny's cast at 12 × 48 took 0.17 s against 1.02 s, the spot cow's 0.36 against 2.35 s
+    the bunny's cast at 12 × 48 took 0.15 s against 1.04 s, the spot cow's 0.29 against 2.25 s
     (``benchmarks/bench_own_rays.py``). Under a trace every face is tested.
 
     Limitations: binary visibility has no useful derivative with respect to the vertices (autodiff
