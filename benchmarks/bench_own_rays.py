@@ -13,6 +13,9 @@ of each (trace, compile and run, the whole-mesh one first) is reported apart, th
 ``--runs`` warm calls, alternating. Both give the same coefficients, which is checked here too.
 Then the own vertices' lamp rays (``jshadow.scene._lamp_rays``, 256 random lamps, the same lift):
 every face under ``jit`` against the culled fans (the lamps below each vertex's plane zeroed), likewise.
+Last, both at once as a static mesh with a map's lamps casts them
+(:func:`jshadow.visibility.vertex_transfer_and_lamps`: each vertex's grid and lamps in one fan)
+against the two culled casts apart, alternating; the values are checked equal.
 """
 
 from __future__ import annotations
@@ -28,7 +31,7 @@ import numpy as np
 
 from jshadow.geometry import load_mesh, normalize_to_unit_sphere
 from jshadow.scene import _lamp_rays
-from jshadow.visibility import vertex_visibility_sh
+from jshadow.visibility import vertex_transfer_and_lamps, vertex_visibility_sh
 from jshadow.visibility._own import _vertex_visibility_sh
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
@@ -93,13 +96,29 @@ def main() -> None:
             a.append(_ms(lamps_whole))
             b.append(_ms(lamps_culled))
         row["lamps_whole_ms"], row["lamps_culled_ms"] = float(np.median(a)), float(np.median(b))
+
+        def apart(v=v, f=f, culled=culled, lamps_culled=lamps_culled):
+            return culled(), lamps_culled()
+
+        def joint(v=v, f=f):
+            return vertex_transfer_and_lamps(v, f, 4, GRID, LIFT, LAMPS)
+
+        _ms(joint)
+        x, y = apart(), joint()
+        row["joint_identical"] = all(np.array_equal(np.asarray(p), np.asarray(q)) for p, q in zip(x, y))
+        a, b = [], []
+        for _ in range(args.runs):
+            a.append(_ms(apart))
+            b.append(_ms(joint))
+        row["apart_ms"], row["joint_ms"] = float(np.median(a)), float(np.median(b))
         out["rows"].append(row)
         print(
             f"{name} ({v.shape[0]} vertices, {f.shape[0]} faces): every face {row['whole_ms']:.0f} ms, "
             f"culled {row['culled_ms']:.0f} ms ({row['speedup']:.2f}x); first calls "
             f"{row['whole_first_s']:.1f} / {row['culled_first_s']:.1f} s; identical: {same}; 256 lamps: "
             f"{row['lamps_whole_ms']:.0f} / {row['lamps_culled_ms']:.0f} ms, "
-            f"identical: {row['lamps_identical']}",
+            f"identical: {row['lamps_identical']}; transfer and lamps apart / in one cast: "
+            f"{row['apart_ms']:.0f} / {row['joint_ms']:.0f} ms, identical: {row['joint_identical']}",
             flush=True,
         )
     if args.json:

@@ -63,6 +63,7 @@ from .scene import (
     occluder_bsv_and_images,
     occluder_images,
     occluder_lamp_images,
+    occluder_own_casts,
     occluder_own_light_visibility,
     occluder_own_visibility,
     occluder_visibilities,
@@ -553,10 +554,14 @@ class Renderer:
                 v, vl = self._static_own[i]
             else:
                 at = 0.0 if shape_is_static(occ) else t
-                v = occluder_own_visibility(occ, at, self.scene, cache=False) if self._casts_sh else None
-                vl = None
-                if lights is not None:
-                    vl = occluder_own_light_visibility(occ, at, self.scene, lights.directions, cache=False)
+                if self._casts_sh and lights is not None:  # both, from one cast where they can be
+                    v, vl = occluder_own_casts(occ, at, self.scene, lights.directions, cache=False)
+                else:
+                    v = occluder_own_visibility(occ, at, self.scene, cache=False) if self._casts_sh else None
+                    vl = None
+                    if lights is not None:
+                        d = lights.directions
+                        vl = occluder_own_light_visibility(occ, at, self.scene, d, cache=False)
                 self.self_visibility_computations += 1
                 if shape_is_static(occ):
                     self._static_own[i] = (v, vl)

@@ -100,6 +100,7 @@ from .visibility import (
     ring_faces,
     scan_coverage,
     vertex_lamp_visibility,
+    vertex_transfer_and_lamps,
     vertex_transfer_maps,
     vertex_visibility_sh,
 )
@@ -131,6 +132,7 @@ __all__ = [
     "occluder_own_visibility",
     "clear_pose_caches",
     "self_visibility_rows",
+    "occluder_own_casts",
     "occluder_own_light_visibility",
     "self_light_rows",
     "own_rows_at_time",
@@ -689,15 +691,7 @@ def occluder_own_visibility(occ: MeshOccluder, t, scene: Scene, cache: bool = Tr
     v_np, f_np, lift = _concrete(v), _concrete(faces), _concrete_lift(scene, t)
     concrete = v_np is not None and f_np is not None and lift is not None
     if concrete and (cache or m.self_visibility == "maps"):  # "maps" needs a concrete pose
-        key = (v_np.shape, str(v_np.dtype), v_np.tobytes(), f_np.shape, f_np.tobytes(), m.sh_bands, grid)
-        key = (
-            *key,
-            lift,
-            m.self_visibility,
-            tuple(m.self_maps_grid),
-            m.self_maps_resolution,
-            *_maps_constants(),
-        )
+        key = _own_key(m, v_np, f_np, lift)
         hit = [own for k, own in _OWN if k == key] if cache else []
         if not hit:
             with jax.ensure_compile_time_eval():
@@ -758,8 +752,7 @@ def occluder_own_light_visibility(
     lift = _concrete_lift(scene, t)
     concrete = v_np is not None and f_np is not None and d_np is not None and lift is not None
     if concrete and (cache or m.self_visibility == "maps"):  # "maps" needs a concrete pose
-        key = (v_np.shape, str(v_np.dtype), v_np.tobytes(), f_np.tobytes(), d_np.tobytes(), lift)
-        key = (*key, m.self_visibility, m.lamp_images, *_maps_constants())
+        key = _own_light_key(m, v_np, f_np, d_np, lift)
         hit = [vis for k, vis in _OWN_LIGHTS if k == key] if cache else []
         if not hit:
             with jax.ensure_compile_time_eval():
@@ -785,6 +778,53 @@ def occluder_own_light_visibility(
         return _lamp_rays(x, faces, jax.lax.stop_gradient(directions).astype(x.dtype), lift)
 
     return _no_derivative_guard(forward, v, SELF_RAYS_NO_DERIVATIVE)
+
+
+def _own_key(m, v_np, f_np, lift) -> tuple:
+    """What :func:`occluder_own_visibility` keeps a pose's transfer under."""
+    key = (v_np.shape, str(v_np.dtype), v_np.tobytes(), f_np.shape, f_np.tobytes(), m.sh_bands)
+    key = (*key, tuple(m.self_visibility_grid), lift, m.self_visibility)
+    return (*key, tuple(m.self_maps_grid), m.self_maps_resolution, *_maps_constants())
+
+
+def _own_light_key(m, v_np, f_np, d_np, lift) -> tuple:
+    """What :func:`occluder_own_light_visibility` keeps a pose's lamp visibility under."""
+    key = (v_np.shape, str(v_np.dtype), v_np.tobytes(), f_np.tobytes(), d_np.tobytes(), lift)
+    return (*key, m.self_visibility, m.lamp_images, *_maps_constants())
+
+
+def occluder_own_casts(
+    occ: MeshOccluder, t, scene: Scene, directions: Float[Array, "K 3"], cache: bool = True
+) -> tuple[Float[Array, "V n2"], Float[Array, "V K"]]:
+    """:func:`occluder_own_visibility` and :func:`occluder_own_light_visibility` of one pose.
+    With ``self_visibility = "rays"`` and a concrete pose both come from one cast
+    (:func:`jshadow.visibility.vertex_transfer_and_lamps`: each vertex's grid and lamps in one fan,
+    the faces' lists made once; the same values), kept as those functions keep theirs; otherwise
+    from the two functions."""
+    m = scene.method
+    if m.self_visibility == "rays":
+        t = jnp.asarray(t, occ.unit_vertices.dtype)
+        v_np, f_np = _concrete(_vertices_at(occ, t)), _concrete(occ.faces)
+        d_np, lift = _concrete(directions), _concrete_lift(scene, t)
+        if all(x is not None for x in (v_np, f_np, d_np, lift)):
+            keys = _own_key(m, v_np, f_np, lift), _own_light_key(m, v_np, f_np, d_np, lift)
+            own = [x for k, x in _OWN if k == keys[0]] if cache else []
+            lamps = [x for k, x in _OWN_LIGHTS if k == keys[1]] if cache else []
+            if not (own and lamps):
+                with jax.ensure_compile_time_eval():
+                    transfer, vis = vertex_transfer_and_lamps(
+                        v_np, f_np, m.sh_bands, tuple(m.self_visibility_grid), lift, d_np.astype(v_np.dtype)
+                    )
+                own, lamps = [np.asarray(transfer)], [np.asarray(vis)]
+                if cache:
+                    for store, key, value in ((_OWN, keys[0], own[0]), (_OWN_LIGHTS, keys[1], lamps[0])):
+                        store.append((key, value))
+                        del store[:-8]
+            return jnp.asarray(own[0]), jnp.asarray(lamps[0])
+    return (
+        occluder_own_visibility(occ, t, scene, cache),
+        occluder_own_light_visibility(occ, t, scene, directions, cache),
+    )
 
 
 def _lamp_rays(v, faces, directions, lift) -> Float[Array, "V K"]:
@@ -833,6 +873,9 @@ def own_rows_at_time(scene: Scene, t) -> tuple[Array, ...] | None:
     if not uses_environment_lights(scene):
         return assemble_own_rows(scene, own)
     d = scene_lighting(scene).env_lights.directions
+    if own is not None:  # both: one cast each ("rays")
+        both = [occluder_own_casts(o, t, scene, d) for o in meshes]
+        return assemble_own_rows(scene, [b[0] for b in both], [b[1] for b in both], d)
     return assemble_own_rows(scene, own, [occluder_own_light_visibility(o, t, scene, d) for o in meshes], d)
 
 

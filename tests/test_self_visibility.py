@@ -248,9 +248,9 @@ def test_rays_under_a_traced_light_centre():
 
     c = f32(0.5, 3.0, 0.2)
     eager = float(total(c))
-    np.testing.assert_allclose(float(jax.jit(total)(c)), eager, rtol=1e-4)
-    g = np.asarray(jax.grad(total)(c))
-    assert np.all(np.isfinite(g)) and np.abs(g).max() > 0
+    value, g = jax.jit(jax.value_and_grad(total))(c)  # one traced program for both
+    np.testing.assert_allclose(float(value), eager, rtol=1e-4)
+    assert np.all(np.isfinite(np.asarray(g))) and np.abs(np.asarray(g)).max() > 0
 
 
 def test_config_reads_and_checks_self_visibility():
@@ -335,3 +335,48 @@ def test_cli_fit_of_a_mesh_parameter_with_rays_is_a_one_line_error(tmp_path, cap
     err = [line for line in capsys.readouterr().err.splitlines() if "error" in line]  # not the progress bar
     assert len(err) == 1 and err[0].startswith("jshadow fit: error: ")
     assert "self_visibility = 'field'" in err[0]
+
+
+def test_transfer_and_lamps_from_one_cast_equal_the_two_casts(monkeypatch):
+    """:func:`jshadow.visibility.vertex_transfer_and_lamps` (each vertex's grid and its lamps in
+    one fan) gives the transfer of :func:`vertex_visibility_sh` and the lamp visibility of the
+    scene's lamp rays bit for bit, on a torus whose hole shadows itself; the scene's
+    :func:`occluder_own_casts` keeps both, so the two functions apart then cast nothing; traced,
+    it falls back to them."""
+    import jshadow.scene as scene_module
+    from jshadow.scene import occluder_own_casts, occluder_own_light_visibility
+    from jshadow.visibility import vertex_transfer_and_lamps
+
+    occ = _torus(sections=(14, 7))
+    v = np.asarray(occ.unit_vertices) * 0.8
+    f = np.asarray(occ.faces)
+    u = np.random.default_rng(3).normal(size=(37, 3))
+    lamps = (u / np.linalg.norm(u, axis=-1, keepdims=True)).astype(np.float32)
+    lift = np.float32(1e-3)
+    transfer, vis = vertex_transfer_and_lamps(v, f, 3, GRID, lift, lamps)
+    np.testing.assert_array_equal(
+        np.asarray(transfer), np.asarray(vertex_visibility_sh(v, f, 3, GRID, offset=lift, transfer=True))
+    )
+    apart = np.asarray(scene_module._lamp_rays(v, f, jnp.asarray(lamps), lift))
+    np.testing.assert_array_equal(np.asarray(vis), apart)
+    above = np.asarray(jshadow.geometry.vertex_normals(jnp.asarray(v), jnp.asarray(f))) @ lamps.T > 0
+    assert np.all(apart[~above] == 0) and 0.1 < apart[above].mean() < 0.95  # the hole blocks some
+    with pytest.raises(ValueError, match="concrete"):
+        jax.jit(lambda x: vertex_transfer_and_lamps(x, f, 3, GRID, lift, lamps))(v)
+
+    scene = _scene(RAYS, occ, n=2)
+    d = jnp.asarray(lamps)
+    scene_module._OWN.clear()
+    scene_module._OWN_LIGHTS.clear()
+    both = occluder_own_casts(occ, 0.0, scene, d)
+    calls = []
+    monkeypatch.setattr(scene_module, "vertex_visibility_sh", lambda *a, **k: calls.append(a))
+    monkeypatch.setattr(scene_module, "_lamp_rays", lambda *a, **k: calls.append(a))
+    np.testing.assert_array_equal(np.asarray(occluder_own_visibility(occ, 0.0, scene)), np.asarray(both[0]))
+    np.testing.assert_array_equal(
+        np.asarray(occluder_own_light_visibility(occ, 0.0, scene, d)), np.asarray(both[1])
+    )
+    assert calls == []  # both kept by the one cast
+    monkeypatch.undo()
+    traced = jax.jit(lambda t: occluder_own_casts(occ, t, scene, d)[1])(jnp.float32(0.0))
+    np.testing.assert_array_equal(np.asarray(traced), np.asarray(both[1]))

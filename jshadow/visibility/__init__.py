@@ -66,6 +66,7 @@ from ._lamps import image_coords as image_coords
 from ._lamps import lamp_images as lamp_images
 from ._lamps import lamp_visibility as lamp_visibility
 from ._lamps import stamp_groups as stamp_groups
+from ._own import vertex_transfer_and_lamps as vertex_transfer_and_lamps
 from ._own import vertex_visibility_sh as vertex_visibility_sh
 from ._own_exact import settle_ambiguous as settle_ambiguous
 from ._own_maps import near_any_hit as near_any_hit
