@@ -282,7 +282,7 @@ def test_hemisphere_fans_cull_by_height_and_sector_and_agree_bit_for_bit(bunny, 
     """:func:`hemisphere_fan_any_hit` on the own-vertex fans of a mesh (each vertex lifted along
     its normal, directions over the normal's hemisphere, as ``self_visibility = "rays"`` casts
     them) gives :func:`ray_fan_any_hit`'s hits exactly, with ``t_min`` and without, with the lists
-    made in one block or in the smallest blocks, the fans' directions sorted once for all (a grid
+    made in one block or in many, the fans' directions sorted once for all (a grid
     whose every cell keeps to one sector) or fan by fan, while listing under a fifth of the whole mesh's
     (ray, face) pairs; fans with lamps below their plane zeroed, and random fans reaching below
     their plane about random normals (the azimuth alone culls) agree too; a convex mesh, every face
@@ -311,10 +311,18 @@ def test_hemisphere_fans_cull_by_height_and_sector_and_agree_bit_for_bit(bunny, 
         assert 0.02 < want.mean() < 0.9
         np.testing.assert_array_equal(got, want)
         assert 0 < listed["rays"] < 0.2 * d.shape[0] * d.shape[1] * f.shape[0]
-    # lists made a block at a time (the smallest blocks: one origin's chunks kept, one (origin,
-    # chunk) pair measured) give the same
-    monkeypatch.setattr(hemisphere, "HEMISPHERE_BLOCK_PAIRS", 1)
+    # lists made a block at a time give the same: chunks kept for 16 origins at a time, faces
+    # measured for 64 (origin, chunk) pairs at a time, the last block shorter (blocks of one pair
+    # gave the same too, in 4 s more)
+    monkeypatch.setattr(hemisphere, "HEMISPHERE_BLOCK_PAIRS", 16 * 64)
+    blocks = []
+    real_sectors = hemisphere._chunk_sectors
+    monkeypatch.setattr(
+        hemisphere, "_chunk_sectors", lambda *a, **k: blocks.append(a[3].shape[0]) or real_sectors(*a, **k)
+    )
     np.testing.assert_array_equal(np.asarray(hemisphere_fan_any_hit(o, d, v32, f, nrm)), want)
+    assert len(blocks) > 2 and blocks[0] == 64 and blocks[-1] <= 64
+    monkeypatch.setattr(hemisphere, "_chunk_sectors", real_sectors)
     monkeypatch.setattr(hemisphere, "HEMISPHERE_BLOCK_PAIRS", 1 << 20)
     # lamps (not a multiple of the sectors) with those below each vertex's plane zeroed
     lamps = random_dirs(rng, (45,), np.float32)
