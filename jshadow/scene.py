@@ -54,7 +54,6 @@ from .geometry import (
     cone_may_meet_sphere,
     fan_may_meet_sphere,
     point_mesh_distance2,
-    vertex_normals,
     with_center_anchors,
 )
 from .lights import (
@@ -105,6 +104,7 @@ from .visibility import (
     vertex_visibility_sh,
 )
 from .visibility._edgescan import _traced_default_slots, always, staged
+from .visibility._own import lifted_origins
 
 __all__ = [
     "RenderResult",
@@ -834,8 +834,7 @@ def _lamp_rays(v, faces, directions, lift) -> Float[Array, "V K"]:
     tests each vertex's rays against only the faces above its plane within their azimuths
     (:func:`jshadow.visibility.hemisphere_fan_any_hit`: the same hits; the bunny's 256 lamps took
     144 against 575 ms, ``benchmarks/bench_own_rays.py``); a traced one against every face."""
-    normals = vertex_normals(v, faces)
-    origins = v + jnp.asarray(lift, v.dtype) * normals
+    origins, normals = lifted_origins(v, faces, jnp.asarray(lift, v.dtype))  # the transfer's origins
     up = normals @ directions.T > 0  # (V, K)
     if any(isinstance(x, jax.core.Tracer) for x in (v, faces, directions, lift)):
         hit = ray_fan_any_hit(origins, directions, v, faces, t_min=lift)

@@ -147,16 +147,31 @@ def vertex_transfer_and_lamps(
     return transfer, (up & ~hit[:, k:]).astype(vertices.dtype)
 
 
-@partial(jax.jit, static_argnames=("grid",))
-def _hemisphere_fans(vertices, faces, grid, offset):
-    """Origins (V, 3), normals (V, 3), hemisphere directions (V, K, 3) and local → world frames
-    (V, 3, 3) of :func:`vertex_visibility_sh`'s fans."""
+@jax.jit
+def lifted_origins(vertices, faces, offset):
+    """(V, 3) origins of the own-vertex rays, each vertex lifted by ``offset`` along its
+    area-weighted normal (not lifted for None), and the (V, 3) normals. One compiled function of
+    its own, so every cast from the same vertices starts from the same origins to the bit: the
+    transfer's fans, the lamps' rays (``jshadow.scene._lamp_rays``) and both at once
+    (:func:`vertex_transfer_and_lamps`)."""
     normals = vertex_normals(vertices, jnp.asarray(faces))
     origins = vertices if offset is None else vertices + jnp.asarray(offset, vertices.dtype) * normals
-    local, _ = hemisphere_grid(*grid, vertices.dtype)  # z >= 0
+    return origins, normals
+
+
+@partial(jax.jit, static_argnames=("grid",))
+def _grid_fans(normals, grid):
+    local, _ = hemisphere_grid(*grid, normals.dtype)  # z >= 0
     e1, e2 = _onb(normals)
     frame = jnp.stack([e1, e2, normals], -1)  # (V, 3, 3): local -> world
-    return origins, normals, jnp.einsum("vij,kj->vki", frame, local), frame
+    return jnp.einsum("vij,kj->vki", frame, local), frame
+
+
+def _hemisphere_fans(vertices, faces, grid, offset):
+    """Origins (V, 3), normals (V, 3), hemisphere directions (V, K, 3) and local → world frames
+    (V, 3, 3) of :func:`vertex_visibility_sh`'s fans (:func:`lifted_origins`)."""
+    origins, normals = lifted_origins(vertices, faces, offset)
+    return (origins, normals, *_grid_fans(normals, grid))
 
 
 @partial(jax.jit, static_argnames=("n", "grid", "transfer"))
