@@ -868,14 +868,14 @@ def own_rows_at_time(scene: Scene, t) -> tuple[Array, ...] | None:
     if not uses_self_rays(scene):
         return None
     meshes = [o for o in scene.occluders if isinstance(o, MeshOccluder)]
-    own = [occluder_own_visibility(o, t, scene) for o in meshes] if casts_own_sh(scene) else None
     if not uses_environment_lights(scene):
+        own = [occluder_own_visibility(o, t, scene) for o in meshes] if casts_own_sh(scene) else None
         return assemble_own_rows(scene, own)
     d = scene_lighting(scene).env_lights.directions
-    if own is not None:  # both: one cast each ("rays")
+    if casts_own_sh(scene):  # both: from one cast each where they can be ("rays")
         both = [occluder_own_casts(o, t, scene, d) for o in meshes]
         return assemble_own_rows(scene, [b[0] for b in both], [b[1] for b in both], d)
-    return assemble_own_rows(scene, own, [occluder_own_light_visibility(o, t, scene, d) for o in meshes], d)
+    return assemble_own_rows(scene, None, [occluder_own_light_visibility(o, t, scene, d) for o in meshes], d)
 
 
 def assemble_own_rows(

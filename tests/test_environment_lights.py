@@ -452,3 +452,24 @@ def test_region_spread_is_the_regions_second_moment_by_quadrature(rng):
     assert np.all(
         np.abs(np.einsum("ki,kij,kj->k", dirs_k, spread, dirs_k)) < 1e-2 * np.trace(spread, axis1=1, axis2=2)
     )
+
+
+def test_own_rows_cast_the_transfer_and_lamps_of_a_pose_once(monkeypatch):
+    """With ``self_visibility = "rays"`` and lamps, :func:`own_rows_at_time` casts each pose's
+    transfer and lamp visibility in one cast (:func:`jshadow.scene.occluder_own_casts`), neither
+    apart; with "light_rays" the lamps alone."""
+    import jshadow.scene as scene_module
+
+    calls = []
+    for name in ("vertex_visibility_sh", "vertex_transfer_and_lamps", "_lamp_rays"):
+        real = getattr(scene_module, name)
+        counted = lambda *a, _r=real, _n=name, **k: calls.append(_n) or _r(*a, **k)  # noqa: E731
+        monkeypatch.setattr(scene_module, name, counted)
+    for own, want in (("rays", ["vertex_transfer_and_lamps"]), ("light_rays", ["_lamp_rays"])):
+        scene = _sun_scene(dataclasses.replace(SPLIT, self_visibility=own), n=2, self_shadow=True)
+        scene_module.clear_pose_caches()
+        calls.clear()
+        rows = own_rows_at_time(scene, 0.0)
+        assert calls == want and (rows[0] is None) == (own == "light_rays")
+        own_rows_at_time(scene, 0.0)
+        assert calls == want  # kept
