@@ -104,7 +104,7 @@ from .visibility import (
     vertex_visibility_sh,
 )
 from .visibility._edgescan import _traced_default_slots, always, staged
-from .visibility._own import lifted_origins
+from .visibility._own import lamp_fans, lifted_origins
 
 __all__ = [
     "RenderResult",
@@ -835,11 +835,10 @@ def _lamp_rays(v, faces, directions, lift) -> Float[Array, "V K"]:
     (:func:`jshadow.visibility.hemisphere_fan_any_hit`: the same hits; the bunny's 256 lamps took
     144 against 575 ms, ``benchmarks/bench_own_rays.py``); a traced one against every face."""
     origins, normals = lifted_origins(v, faces, jnp.asarray(lift, v.dtype))  # the transfer's origins
-    up = normals @ directions.T > 0  # (V, K)
+    up, fans = lamp_fans(normals, directions)  # (V, K), (V, K, 3)
     if any(isinstance(x, jax.core.Tracer) for x in (v, faces, directions, lift)):
         hit = ray_fan_any_hit(origins, directions, v, faces, t_min=lift)
-    else:  # the directions below a vertex's plane made zero: they never hit, and need no faces
-        fans = jnp.where(up[..., None], directions[None], 0.0)
+    else:
         hit = hemisphere_fan_any_hit(origins, fans, v, faces, normals, t_min=lift)
     return (up & ~hit).astype(v.dtype)
 

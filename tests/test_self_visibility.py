@@ -366,8 +366,7 @@ def test_transfer_and_lamps_from_one_cast_equal_the_two_casts(monkeypatch):
 
     scene = _scene(RAYS, occ, n=2)
     d = jnp.asarray(lamps)
-    scene_module._OWN.clear()
-    scene_module._OWN_LIGHTS.clear()
+    scene_module.clear_pose_caches()
     both = occluder_own_casts(occ, 0.0, scene, d)
     calls = []
     monkeypatch.setattr(scene_module, "vertex_visibility_sh", lambda *a, **k: calls.append(a))
@@ -378,5 +377,11 @@ def test_transfer_and_lamps_from_one_cast_equal_the_two_casts(monkeypatch):
     )
     assert calls == []  # both kept by the one cast
     monkeypatch.undo()
+    joint = []
+    real = scene_module.vertex_transfer_and_lamps
+    monkeypatch.setattr(
+        scene_module, "vertex_transfer_and_lamps", lambda *a, **k: joint.append(a) or real(*a, **k)
+    )
     traced = jax.jit(lambda t: occluder_own_casts(occ, t, scene, d)[1])(jnp.float32(0.0))
+    assert joint == []  # the pose is traced: the two functions, each by rays against every face
     np.testing.assert_array_equal(np.asarray(traced), np.asarray(both[1]))

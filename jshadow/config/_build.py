@@ -377,8 +377,9 @@ def auto_light_path(
     "maps" there the transfer takes :data:`AUTO_MAPS_GRID` directions in images of
     :func:`maps_resolution` pixels (``self_maps_grid``, ``self_maps_resolution``; else 8 × 16 at
     64: where lamps carry the map's bright part the transfer carries its dim rest, the animated
-    bunny's vertices 1.40 % either way, and "rays" would add the lamp rays every frame, 2.4× the
-    paper's frame with the same max).
+    bunny's vertices 1.40 % either way, and "rays" would add the lamp rays every frame: 354 ms, about
+    2.4× the paper's frame, with the same max in a probe, BENCHMARKS.md "Deforming meshes' own
+    vertices by rays").
     Where every mesh keeps its shape, ``contact_visibility = "rays"``: the fixed receivers within
     :data:`jshadow.scene.CONTACT_REACH` of a mesh's bounding radius from its vertices (or its
     large faces) take its

@@ -24,13 +24,14 @@ sector) far wider than the rounding of the fan kernel's own tests
 so the hits are those of the whole-mesh fan bit for bit (tests: the bunny's fans, lamps and random
 fans, random triangle soups with corner and axis cases).
 
-Cost. The kernel takes about 45 ns per (origin, group, face) listed with 72 rays a group (the
-spot cow's 3.5 M in about 160 ms, `/tmp` probe): gathering the face and setting up its edge planes,
-then about 0.4 ns per (ray, face) test, so a few wide groups beat many narrow ones (16 sectors:
-the bunny's cast 135 → 184 ms in a `/tmp` probe). Making the lists takes about a third of the whole: 45 of the
-bunny's ~140 ms. Eight sectors gave the bunny's 12 × 48 cast 0.15 s, against 0.45 s for the
-height alone and 1.04 s for every face (``benchmarks/bench_own_rays.py``; BENCHMARKS.md
-"Own-vertex rays by azimuth sector", "Chunked face lists").
+Cost (`/tmp` probes unless named). The kernel takes about 45 ns per (origin, group, face) listed
+with 72 rays a group (the spot cow's 3.5 M in about 160 ms): gathering the face and setting up its
+edge planes, then about 0.4 ns per (ray, face) test, so a few wide groups beat many narrow ones
+(16 sectors: the bunny's cast 135 → 184 ms). Making the lists takes about a third of the whole,
+45 of the bunny's ~140 ms. Eight sectors gave the bunny's 12 × 48 cast 0.15 s, against 0.45 s for
+the height alone and 1.04 s for every face (``benchmarks/bench_own_rays.py``; BENCHMARKS.md
+"Own-vertex rays by azimuth sector", "Deforming meshes' own vertices by rays; chunked face
+lists").
 """
 
 from __future__ import annotations
@@ -288,12 +289,11 @@ def _sector_groups(d, nrm, sectors):
     return (*out, strict)
 
 
-def _chunks(vertices, faces):
-    """The faces (in their Z-order) in chunks of L = :data:`HEMISPHERE_CHUNK_FACES`: corners
-    (NC + 1, 9, L), valid lanes (NC + 1, L) (the last chunk empty, for padding) and each chunk's
-    bounding ball (NC, 3) and (NC,)."""
+def _chunks(tri):
+    """The faces' corners ``tri`` (F, 3, 3), in their Z-order, in chunks of L =
+    :data:`HEMISPHERE_CHUNK_FACES`: corners (NC + 1, 9, L), valid lanes (NC + 1, L) (the last chunk
+    empty, for padding) and each chunk's bounding ball (NC, 3) and (NC,)."""
     lanes = HEMISPHERE_CHUNK_FACES
-    tri = np.asarray(vertices)[np.asarray(faces)]  # (F, 3, 3)
     f = tri.shape[0]
     nc = -(-f // lanes)
     tri = np.concatenate([tri, np.zeros((nc * lanes - f + lanes, 3, 3), tri.dtype)])
@@ -308,7 +308,7 @@ def _chunks(vertices, faces):
     return corners, valid, centers.astype(tri.dtype), radii.astype(tri.dtype)
 
 
-def _face_lists(o, nrm, keep_all, vertices, faces, group_masks, sectors):
+def _face_lists(o, nrm, keep_all, vertices, tri, group_masks, sectors):
     """Every (origin, group) row's list of faces in one buffer (its length bucketed), with each
     row's start and count (n·G,).
 
@@ -321,7 +321,7 @@ def _face_lists(o, nrm, keep_all, vertices, faces, group_masks, sectors):
     any; the host turns each group's masks into face ids, each origin's in the faces' order."""
     n, g = group_masks.shape
     lanes = HEMISPHERE_CHUNK_FACES
-    corners, valid, centers, radii = _chunks(vertices, faces)
+    corners, valid, centers, radii = _chunks(tri)
     nc = centers.shape[0]
     scale = jnp.max(jnp.abs(vertices)) + jnp.max(jnp.abs(o))
     ka = jnp.asarray(keep_all)
@@ -470,8 +470,10 @@ def hemisphere_fan_any_hit(
         raise ValueError(f"HEMISPHERE_SECTORS must be 1 to 8 (a bit each in a byte), got {s}")
     perm, inv, group_masks, strict = _sector_groups(d, nrm, s)
     f_np = np.asarray(faces)
-    faces_z = jnp.asarray(f_np[_morton_order(np.asarray(vertices)[f_np].mean(1))])
-    flat, start, count = _face_lists(o, nrm, ~strict, vertices, faces_z, group_masks, s)
+    tri = np.asarray(vertices)[f_np]  # (F, 3, 3), on the host
+    order = _morton_order(tri.mean(1))
+    faces_z = jnp.asarray(f_np[order])
+    flat, start, count = _face_lists(o, nrm, ~strict, vertices, tri[order], group_masks, s)
     row, st, cnt, steps = (jnp.asarray(x) for x in _runs(start, count, c))
     return _grouped_kernel(
         o,

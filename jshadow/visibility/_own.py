@@ -137,14 +137,23 @@ def vertex_transfer_and_lamps(
     if any(isinstance(x, jax.core.Tracer) for x in (vertices, faces, offset, directions)):
         raise ValueError("vertex_transfer_and_lamps needs concrete inputs")
     origins, normals, dirs, frame = _hemisphere_fans(vertices, faces, grid, offset)
-    up = normals @ directions.T > 0  # (V, K)
-    lamps = jnp.where(up[..., None], directions[None], 0.0)  # below the plane: zero, never hit
+    up, lamps = lamp_fans(normals, directions)
     k = dirs.shape[1]
     hit = hemisphere_fan_any_hit(
         origins, jnp.concatenate([dirs, lamps], 1), vertices, faces, normals, t_min=offset
     )
     transfer = _hemisphere_sh(hit[:, :k], frame, n, grid, True)
     return transfer, (up & ~hit[:, k:]).astype(vertices.dtype)
+
+
+def lamp_fans(normals, directions) -> tuple[Array, Array]:
+    """(V, K) whether each of K distant ``directions`` lies above each vertex's tangent plane, and
+    the (V, K, 3) fans of them with those on or below it made zero (they never hit, and
+    :func:`jshadow.visibility.hemisphere_fan_any_hit` lists them no faces): the own vertices' lamp
+    rays, alone (``jshadow.scene._lamp_rays``) or beside the transfer's grid
+    (:func:`vertex_transfer_and_lamps`)."""
+    up = normals @ directions.T > 0
+    return up, jnp.where(up[..., None], directions[None], 0.0)
 
 
 @jax.jit
